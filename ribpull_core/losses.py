@@ -1,0 +1,62 @@
+"""Loss terms, one function per equation of the paper (and per baseline's published loss).
+
+All tensors are in the unit frame. Shapes: queries (B, 3), scalar fields (B,), gradients (B, 3).
+"""
+
+from __future__ import annotations
+
+import torch
+
+
+def margin_uncertainty(logits: torch.Tensor) -> torch.Tensor:
+    """U(x) = p_in(x) - p_out(x) in [-1, 1] from 2 logits [out, in] (SparseOcc; paper eq. 1's U_theta).
+
+    logits: (B, 2) -> (B,). The surface is the zero set of U (RibPull meshes at the median of U at
+    the input points instead)."""
+    p = torch.softmax(logits, dim=-1)
+    return p[..., 1] - p[..., 0]
+
+
+def pull_to_surface(queries: torch.Tensor, value: torch.Tensor, grad: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
+    """One Newton-Raphson step onto the zero set: q' = q - value(q) * grad / ||grad|| (paper eq. 1).
+
+    queries (B, 3), value (B,), grad (B, 3) -> (B, 3). The denominator is the plain norm, as in the
+    reference code (not squared)."""
+    n = grad.norm(dim=-1, keepdim=True).clamp_min(eps)
+    return queries - value[:, None] * grad / n
+
+
+def sampling_loss(pulled: torch.Tensor, nearest_input: torch.Tensor, weight: float = 10.0) -> torch.Tensor:
+    """L_samp (paper eq. 1) as coded: weight * mean ||q' - p_nn(q)||_2 (L2 norm, not squared).
+
+    pulled, nearest_input: (B, 3) -> scalar."""
+    return weight * (pulled - nearest_input).norm(dim=-1).mean()
+
+
+def binary_entropy_from_logits(logits: torch.Tensor) -> torch.Tensor:
+    """H = -sum_c p_c log p_c per point from 2 logits. (B, 2) -> (B,), in nats."""
+    logp = torch.log_softmax(logits, dim=-1)
+    return -(logp.exp() * logp).sum(dim=-1)
+
+
+def minimax_entropy_loss(
+    logits_uniform: torch.Tensor, logits_input: torch.Tensor, lambda_min: float, lambda_max: float
+) -> torch.Tensor:
+    """L_entr (paper eq. 2): minimise entropy at uniform points of the cube, maximise it at input points.
+
+    L = lambda_min * mean H(uniform) - lambda_max * mean H(input points). Scalar."""
+    return lambda_min * binary_entropy_from_logits(logits_uniform).mean() - lambda_max * binary_entropy_from_logits(
+        logits_input
+    ).mean()
+
+
+def minimax_weight(iteration: int, n_minimax: int) -> float:
+    """Decay of the entropy term's weight: 10^(-8 i / n_minimax) (SparseOcc; ~0 after n_minimax)."""
+    return 10.0 ** (-8.0 * iteration / max(1, n_minimax))
+
+
+def free_space_loss(logits_free: torch.Tensor) -> torch.Tensor:
+    """RibPull's addition: points far from every input point are outside.
+
+    Cross-entropy towards class 0 (outside) at free-space points. (B, 2) -> scalar."""
+    return -torch.log_softmax(logits_free, dim=-1)[..., 0].mean()

@@ -1,0 +1,66 @@
+"""Surface-fitting methods behind one interface (see base.py), and the named run presets.
+
+Every method class offers the presets "paper" (its reference configuration), "default" (RibPull's
+CPU-friendly choice) and "smoke" (seconds, for tests). A run preset picks a method and a mesh
+resolution; `--method` swaps the method and keeps the preset name.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+
+from ..config import FitConfig, MeshConfig
+from ..errors import RibPullInputError
+from .base import Method
+
+#: method name -> "module:Class"
+METHOD_CLASSES = {
+    "sparseocc": "ribpull_core.methods.sparseocc:SparseOcc",
+    "neuralpull": "ribpull_core.methods.neuralpull:NeuralPull",
+    "digs": "ribpull_core.methods.digs:DiGS",
+}
+
+#: run preset -> (default method, finest marching-cubes resolution)
+RUN_PRESETS = {
+    "default": ("sparseocc", 384),
+    "paper": ("sparseocc", 256),
+    "smoke": ("sparseocc", 64),
+}
+
+
+def get_method_class(name: str) -> type[Method]:
+    """The Method subclass registered under `name`."""
+    if name not in METHOD_CLASSES:
+        raise RibPullInputError("bad_parameter", f"unknown method {name!r}; choose one of {sorted(METHOD_CLASSES)}")
+    mod_name, cls_name = METHOD_CLASSES[name].split(":")
+    return getattr(importlib.import_module(mod_name), cls_name)
+
+
+def build_fit_config(
+    preset: str = "default",
+    method: str | None = None,
+    iterations: int | None = None,
+    resolution: int | None = None,
+    seed: int = 0,
+) -> FitConfig:
+    """A fresh FitConfig for run preset `preset`, optionally another method, schedule or resolution."""
+    if preset not in RUN_PRESETS:
+        raise RibPullInputError("bad_parameter", f"unknown preset {preset!r}; choose one of {sorted(RUN_PRESETS)}")
+    default_method, mesh_res = RUN_PRESETS[preset]
+    method = method or default_method
+    cls = get_method_class(method)
+    method_config = cls.presets[preset]()
+    if iterations is not None:
+        if iterations < 1:
+            raise RibPullInputError("bad_parameter", "iterations must be >= 1")
+        method_config = dataclasses.replace(method_config, iterations=int(iterations))
+    if resolution is not None:
+        if not 16 <= resolution <= 1024:
+            raise RibPullInputError("bad_parameter", "resolution must be between 16 and 1024")
+        mesh_res = int(resolution)
+    mesh = MeshConfig(resolution=mesh_res, coarse_resolution=min(64, mesh_res))
+    return FitConfig(preset=preset, method=method, method_config=method_config, mesh=mesh, seed=seed)
+
+
+__all__ = ["METHOD_CLASSES", "RUN_PRESETS", "get_method_class", "build_fit_config", "Method"]

@@ -1,0 +1,197 @@
+"""The small interface every surface-fitting method implements, and what they share.
+
+A *method* (SparseOcc, Neural-Pull, DiGS, ...) turns a point cloud in the unit frame into a
+`FittedField`: a torch module plus the rule that turns its output into an "inside score" whose
+``level`` iso-surface is the reconstructed surface. Everything downstream (meshing, SDF, query,
+weights) talks to `FittedField` only, so methods are interchangeable (nerfstudio-style).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+from typing import Any, Callable, ClassVar
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+
+from ..errors import JobCanceled
+
+
+@dataclass
+class FitProgress:
+    """One progress report from a running fit (unit-free except where named)."""
+
+    iteration: int
+    iterations: int
+    loss: float
+    elapsed_s: float
+    message: str = ""
+
+
+ProgressFn = Callable[[FitProgress], None]
+CancelFn = Callable[[], bool]
+
+
+@dataclass
+class FittedField:
+    """A trained implicit field in the unit frame ([-1, 1]^3 holds the input).
+
+    module: torch module mapping (B, 3) unit coordinates to raw outputs.
+    arch: how to rebuild the module (`ribpull_core.fields.build_module(arch)`), saved with the weights.
+    kind: "occupancy" (outputs are 2 logits [out, in]) or "sdf" (output is a signed distance in unit
+        frame units, negative inside).
+    level: iso-value of `inside_score` that is the surface (SparseOcc: median U at the input points).
+    method: name of the method that produced it; config: its config as a plain dict.
+    """
+
+    module: torch.nn.Module
+    kind: str
+    arch: dict[str, Any] = field(default_factory=dict)  # {"name": ..., "kwargs": {...}}: rebuilds `module`
+    level: float = 0.0
+    method: str = ""
+    config: dict[str, Any] = field(default_factory=dict)
+    iterations_run: int = 0
+    fit_seconds: float = 0.0
+    loss_history: list[float] = field(default_factory=list)
+
+    @property
+    def device(self) -> torch.device:
+        return next(self.module.parameters()).device
+
+    def _raw(self, x_unit: torch.Tensor) -> torch.Tensor:
+        return self.module(x_unit)
+
+    def inside_score_t(self, x_unit: torch.Tensor) -> torch.Tensor:
+        """(B, 3) -> (B,): larger inside; occupancy: U = p_in - p_out in [-1, 1]; sdf: -f."""
+        out = self._raw(x_unit)
+        if self.kind == "occupancy":
+            p = torch.softmax(out, dim=-1)
+            return p[..., 1] - p[..., 0]
+        return -out.reshape(-1)
+
+    @torch.no_grad()
+    def evaluate(self, x_unit: np.ndarray, batch: int = 65536) -> dict[str, np.ndarray]:
+        """Evaluate at (N, 3) unit-frame points, in batches, without gradients.
+
+        Returns dict with "inside_score" (N,), "occupancy" (N,) = probability of being inside
+        (for sdf methods a logistic of the signed distance, scale 0.01 unit), and "U" (N,) margin
+        uncertainty (occupancy methods; for sdf methods 2*occupancy-1).
+        """
+        x_unit = np.asarray(x_unit, dtype=np.float32).reshape(-1, 3)
+        dev = self.device
+        self.module.eval()
+        scores, occs = [], []
+        for i in range(0, len(x_unit), batch):
+            xb = torch.from_numpy(x_unit[i : i + batch]).to(dev)
+            out = self._raw(xb)
+            if self.kind == "occupancy":
+                p = torch.softmax(out, dim=-1)
+                s = p[..., 1] - p[..., 0]
+                o = p[..., 1]
+            else:
+                s = -out.reshape(-1)
+                o = torch.sigmoid(s / 0.01)
+            scores.append(s.float().cpu().numpy())
+            occs.append(o.float().cpu().numpy())
+        score = np.concatenate(scores) if scores else np.zeros(0, np.float32)
+        occ = np.concatenate(occs) if occs else np.zeros(0, np.float32)
+        return {"inside_score": score, "occupancy": occ, "U": score if self.kind == "occupancy" else 2 * occ - 1}
+
+
+class Method(ABC):
+    """A surface-fitting method: one class, one `fit`. Subclasses set `name` and `config_class`."""
+
+    name: ClassVar[str]
+    config_class: ClassVar[type]
+    #: named configs of this method: "paper" (the reference configuration), "default" (what RibPull
+    #: runs by default) and "smoke" (seconds, for tests). Each is a zero-argument factory.
+    presets: ClassVar[dict[str, Callable[[], Any]]] = {}
+
+    def __init__(self, config: Any):
+        self.config = config
+
+    @abstractmethod
+    def fit(
+        self,
+        points_unit: np.ndarray,
+        device: torch.device,
+        progress: ProgressFn | None = None,
+        should_cancel: CancelFn | None = None,
+    ) -> FittedField:
+        """Fit to (N, 3) float unit-frame points; return the field. Must call `check_cancel`
+        at least every few iterations and `progress` about once a second."""
+
+
+# --- shared training helpers -------------------------------------------------------------------
+
+def check_cancel(should_cancel: CancelFn | None) -> None:
+    """Raise JobCanceled when the caller asked to stop (checked inside training loops)."""
+    if should_cancel is not None and should_cancel():
+        raise JobCanceled("canceled")
+
+
+def warmup_cosine_lr(iteration: int, total: int, base_lr: float, warmup: int, final_ratio: float = 0.0) -> float:
+    """Linear warm-up over `warmup` iterations, then cosine decay to final_ratio*base_lr (Neural-Pull/SparseOcc)."""
+    if warmup > 0 and iteration < warmup:
+        return base_lr * (iteration + 1) / warmup
+    t = (iteration - warmup) / max(1, total - warmup)
+    t = min(max(t, 0.0), 1.0)
+    return base_lr * (final_ratio + (1 - final_ratio) * 0.5 * (1 + math.cos(math.pi * t)))
+
+
+def knn_sigma(points: np.ndarray, k: int = 50) -> np.ndarray:
+    """(N,) distance from each point to its k-th nearest neighbour (Neural-Pull's local scale)."""
+    k = int(min(k, len(points) - 1))
+    d, _ = cKDTree(points).query(points, k=k + 1)
+    return d[:, -1]
+
+
+def sample_pull_queries(
+    points: np.ndarray,
+    total_queries: int,
+    rng: np.random.Generator,
+    k: int = 50,
+    scale: float | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Neural-Pull query sampling around the input points.
+
+    points: (N, 3) unit frame. Each point spawns ~total_queries/N queries q = p + s*sigma_p*N(0, I),
+    sigma_p = distance to the k-th neighbour, s = 0.25*sqrt(N/20000) unless given.
+    Returns (queries (Q, 3) float32, index (Q,) of the nearest input point of each query).
+    """
+    n = len(points)
+    sigma = knn_sigma(points, k)
+    if scale is None:
+        scale = 0.25 * math.sqrt(n / 20000.0)
+    per = max(1, int(round(total_queries / n)))
+    src = np.repeat(np.arange(n), per)
+    q = points[src] + (scale * sigma[src])[:, None] * rng.standard_normal((len(src), 3))
+    _, nn = cKDTree(points).query(q, k=1)
+    return q.astype(np.float32), nn.astype(np.int64)
+
+
+def seed_everything(seed: int) -> None:
+    """Make numpy/torch deterministic for a given seed (CPU; CUDA kernels may still vary)."""
+    np.random.seed(seed % (2**32))
+    torch.manual_seed(seed)
+
+
+class ProgressThrottle:
+    """Call `progress` at most every `interval_s` seconds (and always on the last iteration)."""
+
+    def __init__(self, progress: ProgressFn | None, total: int, interval_s: float = 0.5):
+        self.progress, self.total, self.interval = progress, total, interval_s
+        self.t0 = time.perf_counter()
+        self._last = -1e9
+
+    def __call__(self, iteration: int, loss: float, message: str = "") -> None:
+        now = time.perf_counter()
+        if self.progress is None:
+            return
+        if now - self._last >= self.interval or iteration + 1 >= self.total:
+            self._last = now
+            self.progress(FitProgress(iteration + 1, self.total, float(loss), now - self.t0, message))
