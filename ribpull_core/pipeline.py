@@ -70,3 +70,293 @@ class PipelineResult:
 
 ProgressCallback = Callable[[PipelineProgress], None]
 CancelCheck = Callable[[], bool]
+
+
+# --- implementation ----------------------------------------------------------------------------
+
+import json  # noqa: E402  (kept below the public contract above for readability)
+import os  # noqa: E402
+import shutil  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+from dataclasses import replace  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+from .errors import JobCanceled, RibPullInputError  # noqa: E402
+from .frame import UnitFrame  # noqa: E402
+
+#: where each stage's progress lives in the overall [0, 1] fraction
+STAGE_SPANS = {
+    "load": (0.0, 0.02), "fit": (0.02, 0.72), "mesh": (0.72, 0.82), "sdf": (0.82, 0.88),
+    "skeleton": (0.88, 0.95), "metrics": (0.95, 0.98), "export": (0.98, 1.0),
+}
+
+
+def select_device(name: str = "auto"):
+    """torch.device for "auto" (CUDA when present, else CPU), "cpu" or "cuda[:i]"."""
+    import torch
+
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise RibPullInputError("bad_parameter", f"device {name!r} requested but no CUDA device is available; use 'cpu' or 'auto'")
+    if name != "cpu" and not name.startswith("cuda"):
+        raise RibPullInputError("bad_parameter", f"unknown device {name!r}; use 'auto', 'cpu' or 'cuda'")
+    return torch.device(name)
+
+
+def configure_torch_threads(n: int | None = None) -> int:
+    """Set torch's intra-op threads (env RIBPULL_TORCH_THREADS, else all cores); returns the count."""
+    import torch
+
+    n = n or int(os.environ.get("RIBPULL_TORCH_THREADS", "0") or 0) or (os.cpu_count() or 1)
+    torch.set_num_threads(max(1, n))
+    return torch.get_num_threads()
+
+
+class _Reporter:
+    """Maps stage-local progress onto the overall fraction and forwards it; checks cancellation."""
+
+    def __init__(self, progress: ProgressCallback | None, should_cancel: CancelCheck | None):
+        self.progress, self.should_cancel = progress, should_cancel
+
+    def check(self) -> None:
+        if self.should_cancel is not None and self.should_cancel():
+            raise JobCanceled("canceled")
+
+    def __call__(self, stage: str, local: float, **kw) -> None:
+        lo, hi = STAGE_SPANS[stage]
+        if self.progress is not None:
+            self.progress(PipelineProgress(stage=stage, fraction=lo + (hi - lo) * min(max(local, 0.0), 1.0), **kw))
+
+
+def _reference_for_metrics(options: PipelineOptions, cloud):
+    """The reference surface for the metrics: a user-given mesh/points file, else the input points."""
+    if options.reference is None:
+        return cloud, "input points"
+    ref = Path(options.reference)
+    if ref.suffix.lower() in (".stl", ".obj", ".glb", ".off") or (ref.suffix.lower() == ".ply" and _ply_has_faces(ref)):
+        import trimesh
+
+        mesh = trimesh.load(ref, force="mesh")
+        if len(mesh.faces) == 0:
+            raise RibPullInputError("parse_error", f"reference {ref.name} has no faces")
+        return mesh, f"mesh {ref.name}"
+    from .io import load_point_cloud
+
+    return load_point_cloud(ref), f"points {ref.name}"
+
+
+def _ply_has_faces(path: Path) -> bool:
+    with open(path, "rb") as fh:
+        head = fh.read(4096)
+    for line in head.split(b"\n"):
+        if line.startswith(b"element face"):
+            return int(line.split()[-1]) > 0
+        if line.startswith(b"end_header"):
+            break
+    return False
+
+
+def fit_field(cloud, fit_config, device, report: _Reporter):
+    """Fit the configured method to a PointCloud; returns (FittedField, UnitFrame). Stage "fit"."""
+    from .methods import get_method_class
+
+    frame = UnitFrame.fit(cloud.points)
+    method_cfg = replace(fit_config.method_config, seed=fit_config.seed) if hasattr(fit_config.method_config, "seed") else fit_config.method_config
+    method = get_method_class(fit_config.method)(method_cfg)
+
+    def on_fit(p):
+        report("fit", p.iteration / max(1, p.iterations), iteration=p.iteration, iterations=p.iterations, loss=p.loss,
+               message=p.message)
+
+    field = method.fit(frame.to_unit(cloud.points).astype(np.float32), device, progress=on_fit,
+                       should_cancel=report.should_cancel)
+    return field, frame
+
+
+def run_pipeline(
+    input_path: Path,
+    outdir: Path,
+    options: PipelineOptions | None = None,
+    progress: ProgressCallback | None = None,
+    should_cancel: CancelCheck | None = None,
+) -> PipelineResult:
+    """Input file -> artifacts in `outdir` (see ARTIFACT_NAMES) and a metrics dict (lengths in mm).
+
+    Raises RibPullInputError for bad input or options and JobCanceled when should_cancel() is True.
+    All files are written to a temporary sibling directory and moved into `outdir` at the end, so a
+    failed or canceled run leaves `outdir` as it was.
+    """
+    from .io import load_point_cloud
+    from .methods import build_fit_config
+
+    options = options or PipelineOptions()
+    report = _Reporter(progress, should_cancel)
+    timings: dict[str, float] = {}
+    t_all = time.perf_counter()
+
+    def timed(stage):
+        class _T:
+            def __enter__(self_):
+                report.check()
+                report(stage, 0.0, message=f"{stage} started")
+                self_.t = time.perf_counter()
+
+            def __exit__(self_, *exc):
+                timings[stage] = round(time.perf_counter() - self_.t, 3)
+                return False
+
+        return _T()
+
+    fit_config = build_fit_config(options.preset, options.method, options.iterations, options.resolution, options.seed)
+    if options.metrics_samples is not None:
+        if options.metrics_samples < 1000:
+            raise RibPullInputError("bad_parameter", "metrics_samples must be at least 1000")
+        fit_config.metrics.n_samples = int(options.metrics_samples)
+    device = select_device(options.device)
+    threads = configure_torch_threads()
+
+    outdir = Path(outdir)
+    outdir.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=".ribpull-", dir=outdir.parent))
+    try:
+        with timed("load"):
+            cloud = load_point_cloud(Path(input_path), labels=options.labels, max_points=options.max_points,
+                                     max_file_bytes=options.max_file_bytes)
+            reference, reference_name = _reference_for_metrics(options, cloud)
+        with timed("fit"):
+            field, frame = fit_field(cloud, fit_config, device, report)
+        artifacts = _write_surface_artifacts(cloud, field, frame, fit_config, tmp, report, timed)
+        mesh = artifacts.pop("_mesh")
+        skeleton = None
+        if options.skeleton:
+            with timed("skeleton"):
+                skeleton = _skeleton_of(mesh, cloud, report)
+                from .skeleton import export_skeleton
+
+                artifacts.update({k: Path(v) for k, v in export_skeleton(skeleton, tmp, mesh_mm=mesh).items()})
+        with timed("metrics"):
+            metrics = _metrics(cloud, reference, reference_name, mesh, field, frame, fit_config, skeleton)
+        with timed("export"):
+            if options.preview:
+                from .render import render_preview
+
+                polylines = _polylines(skeleton) if skeleton is not None else None
+                artifacts["preview.png"] = Path(render_preview(tmp / "preview.png", mesh, polylines, title=f"RibPull {fit_config.preset}"))
+        metrics["timings_s"] = {**timings, "total": round(time.perf_counter() - t_all, 3)}
+        metrics["device"] = str(device)
+        metrics["torch_threads"] = threads
+        metrics["options"] = {k: (str(v) if isinstance(v, Path) else v) for k, v in options.__dict__.items()}
+        (tmp / "metrics.json").write_text(json.dumps(metrics, indent=2, default=_json_default))
+        artifacts["metrics.json"] = tmp / "metrics.json"
+        report.check()
+        outdir.mkdir(parents=True, exist_ok=True)
+        final = {}
+        for name, path in artifacts.items():
+            os.replace(path, outdir / name)
+            final[name] = outdir / name
+        report("export", 1.0, message="done")
+        return PipelineResult(outdir=outdir, artifacts=final, metrics=metrics)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _write_surface_artifacts(cloud, field, frame, fit_config, tmp: Path, report: _Reporter, timed) -> dict:
+    """Mesh (PLY/STL/OBJ/GLB), SDF NIfTI and weights into `tmp`; returns name -> path (+ "_mesh")."""
+    from .mesh import export_mesh, extract_mesh
+    from .sdf import sdf_grid_for, signed_distance_volume, write_nifti
+    from .weights import save_field
+
+    lo, hi = frame.to_unit(cloud.points).min(0), frame.to_unit(cloud.points).max(0)
+    with timed("mesh"):
+        mesh = extract_mesh(field, frame, (lo, hi), fit_config.mesh, progress=lambda f: report("mesh", f),
+                            should_cancel=report.should_cancel)
+        artifacts = {k: Path(v) for k, v in export_mesh(mesh, tmp).items()}
+    with timed("sdf"):
+        shape, affine = sdf_grid_for(cloud, frame, fit_config.sdf)
+        volume = signed_distance_volume(mesh, field, frame, shape, affine)
+        artifacts["sdf.nii.gz"] = Path(write_nifti(tmp / "sdf.nii.gz", volume, affine))
+    st, js = save_field(field, frame, tmp, extra={"preset": fit_config.preset, "fit_config": fit_config.to_dict()})
+    artifacts["model.safetensors"], artifacts["model.json"] = Path(st), Path(js)
+    artifacts["_mesh"] = mesh
+    return artifacts
+
+
+def _skeleton_of(mesh, cloud, report: _Reporter):
+    """Skeleton of the reconstruction; input labels (NIfTI) carried over by nearest input point."""
+    from scipy.spatial import cKDTree
+
+    from .skeleton import skeleton_from_mesh
+
+    kw = {}
+    if cloud.labels is not None and len(np.unique(cloud.labels)) > 1:
+        tree = cKDTree(cloud.points)
+
+        def labels_for(points_mm):
+            return cloud.labels[tree.query(points_mm, workers=-1)[1]]
+
+        kw["point_labels_fn"] = labels_for
+    return _skeleton_from_mesh_with_labels(skeleton_from_mesh, mesh, cloud, kw, report)
+
+
+def _skeleton_from_mesh_with_labels(skeleton_from_mesh, mesh, cloud, kw, report: _Reporter):
+    import trimesh
+
+    from .skeleton import skeletonize
+
+    labels_for = kw.pop("point_labels_fn", None)
+    if labels_for is None:
+        return skeleton_from_mesh(mesh, n_points=20_000, progress=lambda f, msg="": report("skeleton", f, message=msg))
+    rng = np.random.default_rng(0)
+    pts, face = trimesh.sample.sample_surface(mesh, 20_000, seed=rng)
+    return skeletonize(pts, normals=mesh.face_normals[face], point_labels=labels_for(pts), label_names=cloud.label_names,
+                       progress=lambda f, msg="": report("skeleton", f, message=msg))
+
+
+def _polylines(skeleton) -> list[np.ndarray]:
+    from .skeleton.export import skeleton_polylines
+
+    return skeleton_polylines(skeleton)
+
+
+def _metrics(cloud, reference, reference_name, mesh, field, frame, fit_config, skeleton) -> dict:
+    from .metrics import compression_metrics, mesh_summary, surface_metrics
+
+    surface = surface_metrics(mesh, reference, n_samples=fit_config.metrics.n_samples,
+                              tau_mm=fit_config.metrics.fscore_tau_mm, paper_units_per_mm=frame.paper_units_per_mm,
+                              seed=fit_config.seed)
+    out = {
+        "units": "mm",
+        "input": {"n_points": len(cloud), "format": cloud.source_format, "bytes": cloud.source_bytes,
+                  "labels": sorted(int(v) for v in np.unique(cloud.labels)) if cloud.labels is not None else None},
+        "method": fit_config.method,
+        "preset": fit_config.preset,
+        "iterations_run": field.iterations_run,
+        "iterations_planned": getattr(fit_config.method_config, "iterations", None),
+        "fit_seconds": round(field.fit_seconds, 3),
+        "surface_level": field.level,
+        "reference": reference_name,
+        "surface": surface,
+        "mesh": mesh_summary(mesh),
+        "weights": compression_metrics(cloud.source_bytes, field.module),
+        "frame": frame.to_dict(),
+    }
+    if skeleton is not None:
+        out["skeleton"] = {
+            "n_curves": len(skeleton.curves),
+            "curves": [{"label": c.label, "length_mm": c.length_mm, "mean_radius_mm": c.mean_radius_mm,
+                        "min_radius_mm": c.min_radius_mm} for c in skeleton.curves],
+        }
+    return out
+
+
+def _json_default(o):
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serialisable: {type(o)}")

@@ -1,0 +1,192 @@
+"""Request and response models of the HTTP API (they define the OpenAPI schema)."""
+
+from __future__ import annotations
+
+import math
+from datetime import datetime
+from typing import Annotated, Any, Literal
+from urllib.parse import urlsplit
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+#: must equal ribpull_core.methods.RUN_PRESETS / METHOD_CLASSES (a test checks); kept literal here so
+#: the API does not import torch just to validate a form field
+PRESETS = ("default", "paper", "smoke")
+METHODS = ("sparseocc", "neuralpull", "digs")
+
+Preset = Literal["default", "paper", "smoke"]
+MethodName = Literal["sparseocc", "neuralpull", "digs"]
+Status = Literal["queued", "running", "succeeded", "failed", "canceled"]
+Label = Annotated[int, Field(ge=1, le=255)]
+
+
+class JobParams(BaseModel):
+    """Options of one job, sent as the JSON text of the multipart field `params`.
+
+    Every field is optional. Types are strict: `"iterations": "100"` or `"labels": [1.5]` are rejected.
+    """
+
+    model_config = ConfigDict(extra="forbid", strict=True)
+
+    preset: Preset | None = Field(None, description="Run preset (default: the server's RIBPULL_DEFAULT_PRESET).")
+    method: MethodName | None = Field(None, description="Override the preset's method.")
+    iterations: int | None = Field(None, ge=1, le=100_000, description="Override the fit's iteration count.")
+    resolution: int | None = Field(None, ge=16, le=1024, description="Finest marching-cubes resolution.")
+    labels: list[Label] | None = Field(
+        None, min_length=1, max_length=255, description="NIfTI label values to keep (1..255)."
+    )
+    skeleton: bool = Field(True, description="Also extract the rib skeleton.")
+    preview: bool = Field(True, description="Also render preview.png.")
+    seed: int = Field(0, ge=0, le=2**31 - 1)
+    webhook_url: str | None = Field(
+        None, max_length=2048, description="http(s) URL that receives a signed POST when the job finishes."
+    )
+
+    @field_validator("webhook_url")
+    @classmethod
+    def _url(cls, v: str | None) -> str | None:
+        if v is None:
+            return v
+        if any(c.isspace() or ord(c) < 32 for c in v):
+            raise ValueError("webhook_url must not contain spaces or control characters")
+        try:
+            parts = urlsplit(v)
+            port = parts.port  # raises ValueError for a bad port
+        except ValueError as exc:
+            raise ValueError(f"webhook_url is not a valid URL: {exc}") from None
+        if parts.scheme not in ("http", "https") or not parts.hostname:
+            raise ValueError("webhook_url must be an absolute http:// or https:// URL")
+        del port
+        return v
+
+    @field_validator("labels")
+    @classmethod
+    def _labels(cls, v: list[int] | None) -> list[int] | None:
+        return sorted(set(v)) if v else v
+
+
+class Progress(BaseModel):
+    stage: str | None = Field(None, description="load|fit|mesh|sdf|skeleton|metrics|export|done")
+    fraction: float = Field(0.0, description="Overall progress in [0, 1].")
+    iteration: int | None = None
+    iterations: int | None = None
+    loss: float | None = None
+    message: str = ""
+
+
+class ErrorInfo(BaseModel):
+    code: str
+    message: str
+
+
+class ArtifactLink(BaseModel):
+    name: str
+    href: str
+    media_type: str
+    bytes: int
+
+
+class InputInfo(BaseModel):
+    filename: str
+    format: str
+    bytes: int
+    sha256: str
+    points: int
+
+
+class WebhookInfo(BaseModel):
+    url: str
+    status: str | None = Field(None, description="pending | delivered | failed")
+    attempts: int = 0
+    error: str | None = None
+
+
+class JobOut(BaseModel):
+    id: str
+    status: Status
+    created_at: datetime
+    updated_at: datetime
+    started_at: datetime | None = None
+    finished_at: datetime | None = None
+    params: dict[str, Any]
+    input: InputInfo
+    progress: Progress
+    error: ErrorInfo | None = None
+    attempts: int = Field(0, description="Times a worker started this job.")
+    cancel_requested: bool = False
+    artifacts: list[ArtifactLink] = Field(default_factory=list)
+    artifacts_deleted: bool = Field(False, description="True after DELETE removed a finished job's files.")
+    metrics: dict[str, Any] | None = None
+    webhook: WebhookInfo | None = None
+    links: dict[str, str] = Field(default_factory=dict)
+
+
+class JobList(BaseModel):
+    items: list[JobOut]
+    next_cursor: str | None = Field(None, description="Pass as `cursor` for the next (older) page; null at the end.")
+    limit: int
+
+
+FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
+
+
+class QueryIn(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    points_mm: list[tuple[FiniteFloat, FiniteFloat, FiniteFloat]] = Field(
+        ..., min_length=1, description="Points [x, y, z] in mm, in the input's frame (cap: RIBPULL_MAX_QUERY_POINTS)."
+    )
+
+
+class QueryOut(BaseModel):
+    occupancy: list[float | None] = Field(..., description="Probability of being inside, per point.")
+    U: list[float | None] = Field(..., description="Inside score p_in - p_out in [-1, 1] (paper's U).")
+    inside: list[bool]
+    sdf_mm: list[float | None] | None = Field(None, description="Signed distance in mm, negative inside.")
+
+
+class Problem(BaseModel):
+    """RFC 9457 problem details (application/problem+json) plus a machine-readable `code`."""
+
+    type: str
+    title: str
+    status: int
+    detail: str
+    code: str
+    instance: str | None = None
+    errors: list[dict[str, Any]] | None = None
+
+
+class Health(BaseModel):
+    status: str
+
+
+class Ready(BaseModel):
+    status: str
+    checks: dict[str, Any]
+
+
+def finite_or_none(x: Any) -> float | None:
+    try:
+        f = float(x)
+    except (TypeError, ValueError):
+        return None
+    return f if math.isfinite(f) else None
+
+
+def json_safe(obj: Any) -> Any:
+    """Replace NaN/inf by None recursively (JSON has no NaN; Postgres JSON rejects it)."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {str(k): json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_safe(v) for v in obj]
+    if hasattr(obj, "item") and callable(obj.item):  # numpy scalar
+        try:
+            return json_safe(obj.item())
+        except Exception:  # noqa: BLE001
+            return str(obj)
+    if isinstance(obj, (str, int, bool)) or obj is None:
+        return obj
+    return str(obj)

@@ -1,0 +1,298 @@
+"""Marching cubes on a fitted field, coarse-to-fine, and mesh helpers (components, export).
+
+The field lives in the unit frame; every mesh this module returns is in millimetres in the input's
+frame (`UnitFrame.to_mm`). The expensive part of meshing a neural field is the network queries, not
+the grid: `extract_mesh` evaluates a dense coarse grid, then only the cells near the level set at
+each finer level, and fills the rest of the fine grid from the coarse values (sign-preserving
+trilinear upsampling), so marching cubes still runs on a dense fine grid.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+import trimesh
+from scipy import ndimage
+from skimage import measure
+
+from .config import MeshConfig
+from .errors import JobCanceled, RibPullInputError
+from .frame import UnitFrame
+from .methods.base import FittedField
+
+#: points per network call while meshing (also the granularity of cancel checks)
+QUERY_BLOCK = 131_072
+
+
+# --- field evaluation ------------------------------------------------------------------------------
+
+@torch.no_grad()
+def inside_scores(
+    field: FittedField,
+    x_unit: np.ndarray,
+    block: int = QUERY_BLOCK,
+    should_cancel: Callable[[], bool] | None = None,
+    on_block: Callable[[int], None] | None = None,
+) -> np.ndarray:
+    """(N, 3) unit-frame points -> (N,) float32 inside score (larger = inside; surface at field.level).
+
+    Evaluated in blocks of `block` points; `should_cancel` is checked before every block (raises
+    JobCanceled) and `on_block(n_done)` is called after each.
+    """
+    x_unit = np.asarray(x_unit, dtype=np.float32).reshape(-1, 3)
+    out = np.empty(len(x_unit), dtype=np.float32)
+    dev = field.device
+    field.module.eval()
+    for i in range(0, len(x_unit), block):
+        if should_cancel is not None and should_cancel():
+            raise JobCanceled("canceled")
+        xb = torch.from_numpy(x_unit[i : i + block]).to(dev)
+        out[i : i + block] = field.inside_score_t(xb).float().cpu().numpy()
+        if on_block is not None:
+            on_block(min(i + block, len(x_unit)))
+    return out
+
+
+# --- grid helpers ----------------------------------------------------------------------------------
+
+def _upsample2(a: np.ndarray) -> np.ndarray:
+    """(n0, n1, n2) -> (2n0-1, 2n1-1, 2n2-1): separable linear 2x upsampling (= trilinear).
+
+    Existing nodes keep their values; new nodes are averages of their neighbours along each axis,
+    so any new node inside a cell whose 8 corners share a sign (w.r.t. any level) keeps that sign.
+    """
+    for axis in range(3):
+        a = np.moveaxis(a, axis, 0)
+        n = a.shape[0]
+        out = np.empty((2 * n - 1,) + a.shape[1:], dtype=a.dtype)
+        out[0::2] = a
+        out[1::2] = a[:-1]
+        out[1::2] += a[1:]
+        out[1::2] *= 0.5
+        a = np.moveaxis(out, 0, axis)
+    return np.ascontiguousarray(a)
+
+
+def _straddling_cells(values: np.ndarray, level: float) -> np.ndarray:
+    """(n0, n1, n2) node values -> (n0-1, n1-1, n2-1) bool: cells whose 8 corners are not all on one
+    side of `level` (inside means value > level)."""
+    inside = values > level
+    any_in = np.zeros(tuple(s - 1 for s in values.shape), dtype=bool)
+    all_in = np.ones_like(any_in)
+    for dx in (0, 1):
+        for dy in (0, 1):
+            for dz in (0, 1):
+                c = inside[dx : dx + any_in.shape[0], dy : dy + any_in.shape[1], dz : dz + any_in.shape[2]]
+                any_in |= c
+                all_in &= c
+    return any_in & ~all_in
+
+
+def _cells_to_fine_nodes(cells: np.ndarray) -> np.ndarray:
+    """(c0, c1, c2) bool active cells at one level -> (2c0+1, 2c1+1, 2c2+1) bool: every node of the
+    next (2x finer) level that lies in or on an active cell."""
+    out = np.zeros(tuple(2 * s + 1 for s in cells.shape), dtype=bool)
+    c0, c1, c2 = cells.shape
+    for dx in (0, 1, 2):
+        for dy in (0, 1, 2):
+            for dz in (0, 1, 2):
+                out[dx : dx + 2 * c0 : 2, dy : dy + 2 * c1 : 2, dz : dz + 2 * c2 : 2] |= cells
+    return out
+
+
+def mesh_grid(bounds_unit: tuple[np.ndarray, np.ndarray], config: MeshConfig) -> dict:
+    """Geometry of the coarse-to-fine grid for a (lo (3,), hi (3,)) unit-frame box.
+
+    The box is padded by config.padding (unit-frame units = fraction of the half extent). The finest
+    cell size h = longest padded side / config.resolution. The number of 2x refinements L is the
+    largest with resolution / 2^L >= config.coarse_resolution, so the dense coarse pass is at least
+    as fine as asked. Cell counts per axis are rounded up to multiples of 2^L (grid centred on the box).
+    Returns {"origin" (3,) unit, "h" unit, "levels" L, "cells" (3,) finest cells per axis}.
+    """
+    lo = np.asarray(bounds_unit[0], dtype=np.float64) - config.padding
+    hi = np.asarray(bounds_unit[1], dtype=np.float64) + config.padding
+    ext = hi - lo
+    if not np.all(np.isfinite(ext)) or ext.max() <= 0:
+        raise RibPullInputError("degenerate", "cannot mesh: the input bounding box has zero extent")
+    res = int(config.resolution)
+    coarse = max(2, int(config.coarse_resolution))
+    if res < 2:
+        raise RibPullInputError("bad_parameter", f"mesh resolution must be >= 2, got {res}")
+    levels = max(0, int(math.floor(math.log2(res / coarse)))) if res > coarse else 0
+    step = 2**levels
+    h = float(ext.max()) / res
+    cells = np.maximum(1, np.ceil(ext / h / step - 1e-9)).astype(int) * step
+    origin = (lo + hi) / 2.0 - cells * h / 2.0
+    return {"origin": origin, "h": h, "levels": levels, "cells": cells}
+
+
+# --- marching cubes --------------------------------------------------------------------------------
+
+def extract_mesh(
+    field: FittedField,
+    frame: UnitFrame,
+    bounds_unit: tuple[np.ndarray, np.ndarray],
+    config: MeshConfig,
+    progress: Callable[[float], None] | None = None,
+    should_cancel: Callable[[], bool] | None = None,
+) -> trimesh.Trimesh:
+    """Coarse-to-fine marching cubes of {inside_score > field.level}; returns a mesh in mm.
+
+    bounds_unit: (lo (3,), hi (3,)) of the input in the unit frame; the meshed box is that ± padding
+    (see `mesh_grid`). Level 0 evaluates the field densely at the coarse nodes; at each finer level the
+    cells whose corners straddle the level, dilated by one cell, are split 2x and only their new nodes
+    are queried. Unqueried fine nodes get trilinearly upsampled coarse values, which keeps the sign of
+    their coarse parent cell. A feature that fits between coarse nodes (thinner than about one coarse
+    cell) can therefore be missed.
+
+    The fine grid is padded with one layer of "outside" so the mesh is closed where the field touches
+    the box. Faces are oriented outward (normals point to lower inside score). Components with fewer
+    than config.keep_components_min_fraction of the faces are dropped.
+
+    progress(fraction in [0, 1]) is called during the work; should_cancel() is checked before every
+    block of network queries and raises JobCanceled. Raises RibPullInputError("degenerate") if the
+    field has no level crossing in the box.
+
+    metadata: field_queries (network queries made), dense_queries (a dense fine grid's), resolution,
+    levels, voxel_mm (fine cell size in mm), level.
+    """
+    grid = mesh_grid(bounds_unit, config)
+    origin, h, levels, cells = grid["origin"], grid["h"], grid["levels"], grid["cells"]
+    level = float(field.level)
+    dense_queries = int(np.prod(cells + 1))
+    n_levels = levels + 1
+
+    def report(level_idx: int, frac: float) -> None:
+        if progress is not None:
+            progress(min(1.0, 0.95 * (level_idx + frac) / n_levels))
+
+    def query(idx: np.ndarray, step: int, level_idx: int) -> np.ndarray:
+        """(M, 3) node indices at a level with node spacing `step` fine cells -> (M,) scores."""
+        x = origin + idx * (step * h)
+        return inside_scores(
+            field, x, should_cancel=should_cancel,
+            on_block=lambda n: report(level_idx, n / max(1, len(x))),
+        )
+
+    # level 0: dense coarse grid
+    step = 2**levels
+    shape0 = tuple(int(c) for c in cells // step + 1)
+    idx = np.stack(np.meshgrid(*[np.arange(n) for n in shape0], indexing="ij"), -1).reshape(-1, 3)
+    values = query(idx, step, 0).reshape(shape0)
+    n_queries = values.size
+    del idx
+    crossing = _straddling_cells(values, level)
+    if not crossing.any():
+        where = "inside" if values.min() > level else "outside"
+        raise RibPullInputError(
+            "degenerate",
+            f"the fitted field is {where} everywhere in the meshing box (inside score "
+            f"{values.min():.3g}..{values.max():.3g}, level {level:.3g}), so it has no surface; the fit "
+            "probably failed: try more iterations, another method or preset, or check the input",
+        )
+    evaluated = np.ones(shape0, dtype=bool)
+
+    # finer levels: refine only near the level set
+    struct = ndimage.generate_binary_structure(3, 3)
+    for li in range(1, n_levels):
+        step //= 2
+        active = ndimage.binary_dilation(crossing, structure=struct)
+        values = _upsample2(values)
+        ev = np.zeros(values.shape, dtype=bool)
+        ev[::2, ::2, ::2] = evaluated
+        evaluated = ev
+        todo = _cells_to_fine_nodes(active)
+        todo &= ~evaluated
+        idx = np.argwhere(todo)
+        if len(idx):
+            values[todo] = query(idx, step, li)  # argwhere and boolean indexing share C order
+        n_queries += len(idx)
+        evaluated |= todo
+        del todo, idx, active
+        crossing = _straddling_cells(values, level)
+    del evaluated, crossing
+    report(n_levels, 0.0)
+
+    # close the surface at the box: one layer of clearly-outside values
+    span = max(float(values.max()) - level, level - float(values.min()), 1e-6)
+    padded = np.pad(values, 1, mode="constant", constant_values=level - span)
+    del values
+    verts, faces, _normals, _ = measure.marching_cubes(padded, level=level, gradient_direction="descent")
+    del padded
+    if len(faces) == 0:
+        raise RibPullInputError("degenerate", "marching cubes found no surface at the field's level")
+    verts_unit = origin + (verts - 1.0) * h  # -1: the padding layer
+    verts_mm = frame.to_mm(verts_unit)
+    # skimage winds its faces so that (right-hand) normals point to higher values: flip to outward
+    mesh = trimesh.Trimesh(vertices=verts_mm, faces=faces[:, ::-1], process=True)
+    if config.keep_components_min_fraction > 0:
+        mesh = _drop_small_components(mesh, config.keep_components_min_fraction)
+    mesh.metadata.update(
+        field_queries=int(n_queries),
+        dense_queries=dense_queries,
+        resolution=int(cells.max()),
+        levels=int(levels),
+        voxel_mm=float(h * frame.half_extent_mm),
+        level=level,
+    )
+    if progress is not None:
+        progress(1.0)
+    return mesh
+
+
+def _drop_small_components(mesh: trimesh.Trimesh, min_fraction: float) -> trimesh.Trimesh:
+    """Keep components with at least min_fraction of the faces (the largest is always kept)."""
+    parts = split_components(mesh)
+    if len(parts) <= 1:
+        return mesh
+    sizes = np.array([len(p.faces) for p in parts])
+    keep = [p for p, s in zip(parts, sizes) if s >= min_fraction * sizes.sum() or s == sizes.max()]
+    out = trimesh.util.concatenate(keep)
+    out.metadata.update(mesh.metadata)
+    return out
+
+
+# --- components and export -------------------------------------------------------------------------
+
+def _face_component_labels(mesh: trimesh.Trimesh) -> np.ndarray:
+    """(F,) component label per face; faces are connected when they share an edge."""
+    n = len(mesh.faces)
+    if n == 0:
+        return np.zeros(0, dtype=np.int64)
+    return trimesh.graph.connected_component_labels(mesh.face_adjacency, node_count=n)
+
+
+def split_components(mesh: trimesh.Trimesh) -> list[trimesh.Trimesh]:
+    """Edge-connected components of `mesh`, largest (by faces) first; units unchanged."""
+    labels = _face_component_labels(mesh)
+    if len(labels) == 0:
+        return []
+    counts = np.bincount(labels)
+    order = np.argsort(-counts, kind="stable")
+    return [mesh.submesh([np.flatnonzero(labels == c)], append=True) for c in order]
+
+
+def count_components(mesh: trimesh.Trimesh) -> int:
+    """Number of edge-connected components (0 for an empty mesh)."""
+    labels = _face_component_labels(mesh)
+    return int(labels.max() + 1) if len(labels) else 0
+
+
+def export_mesh(
+    mesh: trimesh.Trimesh, outdir: str | Path, formats: tuple[str, ...] = ("ply", "stl", "obj", "glb")
+) -> dict[str, Path]:
+    """Write outdir/mesh.<fmt> for each format; coordinates stay in mm (also in GLB, whose own
+    convention is metres: scale by 0.001 when a viewer needs true size). Returns {fmt: path}."""
+    outdir = Path(outdir)
+    outdir.mkdir(parents=True, exist_ok=True)
+    paths: dict[str, Path] = {}
+    for fmt in formats:
+        fmt = fmt.lower().lstrip(".")
+        path = outdir / f"mesh.{fmt}"
+        mesh.export(path, file_type=fmt)
+        paths[fmt] = path
+    return paths

@@ -1,0 +1,239 @@
+"""Signed distance in mm from a fitted occupancy field and its mesh (the paper's occupancy -> SDF step).
+
+|SDF| is the distance to the reconstructed surface (the marching-cubes mesh, in mm); the sign comes
+from the field (inside_score > level => inside => negative). Volumes are written as NIfTI so they
+overlay the input in 3D Slicer; `query_field` answers point queries for the service.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import nibabel as nib
+import numpy as np
+import trimesh
+from scipy import ndimage
+from scipy.spatial import cKDTree
+
+from .config import SdfConfig
+from .frame import UnitFrame
+from .mesh import inside_scores
+from .methods.base import FittedField
+from .pointcloud import PointCloud
+
+#: voxels processed per chunk (bounds memory: ~100 bytes per voxel in flight)
+CHUNK = 1 << 20
+
+
+# --- the grid --------------------------------------------------------------------------------------
+
+def sdf_grid_for(cloud: PointCloud, frame: UnitFrame, config: SdfConfig) -> tuple[tuple[int, int, int], np.ndarray]:
+    """The grid of the SDF volume: (shape (3,), affine (4, 4) voxel index -> mm).
+
+    NIfTI inputs (cloud.nifti_affine set): the input volume's own grid, so the SDF overlays it; if
+    config.voxel_mm is set, or the grid has more than config.max_voxels voxels, every s-th voxel
+    along each axis is kept (integer stride s, the kept voxel centres are input voxel centres).
+    Other inputs: an axis-aligned grid over the input bounding box ± config.padding_mm, spacing
+    config.voxel_mm (default: longest side of the unpadded box / 128, the frame's 2·half_extent_mm),
+    coarsened until the grid has at most config.max_voxels voxels.
+    """
+    max_vox = int(config.max_voxels)
+    if cloud.nifti_affine is not None and cloud.nifti_shape is not None:
+        aff = np.asarray(cloud.nifti_affine, dtype=np.float64)
+        shape = np.asarray(cloud.nifti_shape[:3], dtype=np.int64)
+        spacing = np.linalg.norm(aff[:3, :3], axis=0)
+        stride = 1
+        if config.voxel_mm:
+            stride = max(1, int(round(float(config.voxel_mm) / float(spacing.min()))))
+        while np.prod(-(-shape // stride)) > max_vox:
+            stride += 1
+        new_shape = tuple(int(n) for n in -(-shape // stride))
+        new_aff = aff.copy()
+        new_aff[:3, :3] = aff[:3, :3] * stride
+        return new_shape, new_aff
+    lo, hi = cloud.bbox_mm
+    lo = lo - config.padding_mm
+    hi = hi + config.padding_mm
+    ext = hi - lo
+    spacing = float(config.voxel_mm) if config.voxel_mm else 2.0 * frame.half_extent_mm / 128.0
+    if not spacing > 0:
+        raise ValueError(f"SDF voxel size must be positive, got {spacing}")
+    shape = np.ceil(ext / spacing).astype(np.int64) + 1
+    while np.prod(shape) > max_vox:
+        spacing *= (np.prod(shape) / max_vox) ** (1 / 3) * 1.001
+        shape = np.ceil(ext / spacing).astype(np.int64) + 1
+    aff = np.eye(4)
+    aff[:3, :3] *= spacing
+    aff[:3, 3] = lo
+    return tuple(int(n) for n in shape), aff
+
+
+def voxel_centers_mm(shape: tuple[int, int, int], affine: np.ndarray, start: int = 0, stop: int | None = None) -> np.ndarray:
+    """(M, 3) mm coordinates of flat (C-order) voxel indices start..stop of a grid."""
+    stop = int(np.prod(shape)) if stop is None else stop
+    ijk = np.stack(np.unravel_index(np.arange(start, stop), shape), -1).astype(np.float64)
+    return ijk @ affine[:3, :3].T + affine[:3, 3]
+
+
+# --- unsigned distance to a mesh ---------------------------------------------------------------------
+
+class SurfaceDistance:
+    """Fast unsigned distance (mm) to a triangle mesh: kd-tree over dense surface samples + vertices,
+    refined near the surface by the exact distance to the triangle of the nearest sample.
+
+    Accuracy: the result is always >= the true distance (it is a distance to a surface point). It is
+    exact when the nearest sample lies on the closest triangle, which is the usual case near the
+    surface; otherwise the error is below the sample spacing s = sqrt(area / n) (about 0.5 mm for a
+    300,000 mm² ribcage at 1M samples) and shrinks like s²/(2·distance) away from the surface.
+    Build once, call many times (the service keeps one per job).
+    """
+
+    def __init__(self, mesh_mm: trimesh.Trimesh, n_samples: int = 1_000_000, seed: int = 0):
+        if len(mesh_mm.faces) == 0:
+            raise ValueError("cannot measure distances to an empty mesh")
+        pts, fidx = trimesh.sample.sample_surface(mesh_mm, int(n_samples), seed=seed)
+        vface = np.empty(len(mesh_mm.vertices), dtype=np.int64)
+        for j in range(3):
+            vface[mesh_mm.faces[:, j]] = np.arange(len(mesh_mm.faces))
+        used = np.zeros(len(mesh_mm.vertices), dtype=bool)
+        used[mesh_mm.faces.ravel()] = True
+        self.points = np.concatenate([np.asarray(pts), mesh_mm.vertices[used]])
+        self.face_of = np.concatenate([np.asarray(fidx, dtype=np.int64), vface[used]])
+        self.triangles = np.asarray(mesh_mm.triangles, dtype=np.float64)
+        self.tree = cKDTree(self.points)
+        self.spacing_mm = math.sqrt(float(mesh_mm.area) / max(1, len(self.points)))
+        self.bounds_mm = np.asarray(mesh_mm.bounds, dtype=np.float64)
+
+    def __call__(self, points_mm: np.ndarray, refine_within_mm: float | None = None) -> np.ndarray:
+        """(N, 3) mm -> (N,) float64 unsigned distance in mm. Points closer than refine_within_mm
+        (default 4 sample spacings) get the exact distance to their nearest sample's triangle."""
+        p = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
+        d, i = self.tree.query(p, k=1, workers=-1)
+        r = 4.0 * self.spacing_mm if refine_within_mm is None else refine_within_mm
+        near = np.flatnonzero(d < r)
+        if len(near):
+            tri = self.triangles[self.face_of[i[near]]]
+            cp = trimesh.triangles.closest_point(tri, p[near])
+            d[near] = np.minimum(d[near], np.linalg.norm(p[near] - cp, axis=1))
+        return d
+
+    def outside_bounds(self, points_mm: np.ndarray) -> np.ndarray:
+        """(N,) bool: outside the mesh's bounding box (so outside the closed mesh)."""
+        p = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
+        return np.any(p < self.bounds_mm[0], axis=1) | np.any(p > self.bounds_mm[1], axis=1)
+
+
+# --- signed distance ---------------------------------------------------------------------------------
+
+def signed_distance_volume(
+    mesh_mm: trimesh.Trimesh,
+    field: FittedField,
+    frame: UnitFrame,
+    shape: tuple[int, int, int],
+    affine: np.ndarray,
+    n_samples: int = 1_000_000,
+    votes: int = 16,
+    seed: int = 0,
+) -> np.ndarray:
+    """(shape) float32 signed distance in mm at the voxel centres (affine: voxel -> mm), negative inside.
+
+    |value| = `SurfaceDistance` to mesh_mm (see its accuracy). Sign: inside_score > field.level.
+    The network is only queried where it matters: voxels within 1.5 voxel diagonals of the surface
+    get the field's own sign; the other voxels form connected regions (6-connectivity) that cannot
+    cross the surface, and each takes the majority sign of the field at up to `votes` random voxels
+    of it. Voxels outside the mesh's bounding box are outside (the mesh is closed at its meshing
+    box, and a field is not trusted outside the box it was meshed in).
+    """
+    shape = tuple(int(n) for n in shape)
+    n = int(np.prod(shape))
+    dist = SurfaceDistance(mesh_mm, n_samples=n_samples, seed=seed)
+    band = 1.5 * float(np.linalg.norm(np.linalg.norm(affine[:3, :3], axis=0)))
+    absd = np.empty(n, dtype=np.float32)
+    outbox = np.empty(n, dtype=bool)
+    for s in range(0, n, CHUNK):
+        p = voxel_centers_mm(shape, affine, s, min(n, s + CHUNK))
+        absd[s : s + len(p)] = dist(p)
+        outbox[s : s + len(p)] = dist.outside_bounds(p)
+    inside = np.zeros(n, dtype=bool)
+    level = float(field.level)
+
+    def field_inside(flat_idx: np.ndarray) -> np.ndarray:
+        out = np.empty(len(flat_idx), dtype=bool)
+        for s in range(0, len(flat_idx), CHUNK):
+            ijk = np.stack(np.unravel_index(flat_idx[s : s + CHUNK], shape), -1).astype(np.float64)
+            p = ijk @ affine[:3, :3].T + affine[:3, 3]  # voxel centres, mm
+            out[s : s + len(p)] = inside_scores(field, frame.to_unit(p)) > level
+        return out
+
+    near = np.flatnonzero((absd <= band) & ~outbox)
+    inside[near] = field_inside(near)
+
+    far = (absd > band).reshape(shape)
+    labels, n_lab = ndimage.label(far)
+    if n_lab:
+        flat = labels.ravel()
+        decided = np.zeros(n_lab + 1, dtype=bool)
+        decided[np.unique(flat[outbox & (flat > 0)])] = True  # touches outside the box: outside
+        decided[0] = True
+        cand = np.flatnonzero(~decided[flat])
+        if len(cand):
+            rng = np.random.default_rng(seed)
+            cand = cand[rng.permutation(len(cand))]
+            lab = flat[cand]
+            order = np.argsort(lab, kind="stable")
+            cand, lab = cand[order], lab[order]
+            first = np.searchsorted(lab, lab, side="left")
+            pick = (np.arange(len(lab)) - first) < votes
+            vi = field_inside(cand[pick])
+            n_in = np.bincount(lab[pick], weights=vi, minlength=n_lab + 1)
+            n_all = np.bincount(lab[pick], minlength=n_lab + 1)
+            comp_inside = n_in * 2 > n_all
+            sel = ~decided[flat]
+            inside[sel] = comp_inside[flat[sel]]
+    sdf = np.where(inside, -absd, absd).astype(np.float32)
+    return sdf.reshape(shape)
+
+
+def write_nifti(path: str | Path, volume: np.ndarray, affine: np.ndarray) -> Path:
+    """Write a float32 volume (mm values) as NIfTI-1 with qform = sform = affine (scanner, mm)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    aff = np.asarray(affine, dtype=np.float64)
+    img = nib.Nifti1Image(np.asarray(volume, dtype=np.float32), aff)
+    img.header.set_xyzt_units(xyz="mm")
+    img.set_qform(aff, code=1)
+    img.set_sform(aff, code=1)
+    nib.save(img, str(path))
+    return path
+
+
+# --- point queries -----------------------------------------------------------------------------------
+
+def query_field(
+    field: FittedField,
+    frame: UnitFrame,
+    points_mm: np.ndarray,
+    mesh_mm: trimesh.Trimesh | SurfaceDistance | None = None,
+) -> dict[str, np.ndarray]:
+    """Evaluate the field at (N, 3) mm points.
+
+    Returns "occupancy" (N,) probability of being inside, "U" (N,) margin uncertainty p_in - p_out,
+    "inside" (N,) bool (inside_score > level) and, when mesh_mm (a mesh in mm, or a prebuilt
+    `SurfaceDistance` to reuse across calls) is given, "sdf_mm" (N,) signed distance in mm (negative
+    inside; sign from the field, but outside the mesh's bounding box always positive, as in
+    `signed_distance_volume`).
+    """
+    p = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
+    ev = field.evaluate(frame.to_unit(p))
+    out = {
+        "occupancy": ev["occupancy"],
+        "U": ev["U"],
+        "inside": ev["inside_score"] > float(field.level),
+    }
+    if mesh_mm is not None:
+        dist = mesh_mm if isinstance(mesh_mm, SurfaceDistance) else SurfaceDistance(mesh_mm, n_samples=200_000)
+        d = dist(p)
+        neg = out["inside"] & ~dist.outside_bounds(p)
+        out["sdf_mm"] = np.where(neg, -d, d)
+    return out

@@ -1,0 +1,447 @@
+"""From contracted points to clean medial curves (mm): sampling, graph, paths, recentring, ends.
+
+A cluster's contracted points are reduced to ball samples (Cao et al.'s farthest-point ball
+sampling), linked when their members are neighbours on the original surface, collapsed to a tree
+(minimum spanning tree) and split into simple paths: the longest path first, then side branches
+longer than the pruning length. Each path becomes a polyline that is then refined on the ORIGINAL
+surface points: recentred on the ellipse fitted to its cross-sections, smoothed, and extended along
+its end tangents to the cap centres, and resampled at ~1 mm.
+"""
+
+from __future__ import annotations
+
+import networkx as nx
+import numpy as np
+from scipy import sparse
+from scipy.ndimage import gaussian_filter1d
+from scipy.sparse.csgraph import minimum_spanning_tree
+from scipy.spatial import cKDTree
+
+# ----------------------------------------------------------------------------------------------
+# contracted points -> graph -> paths
+
+
+def ball_sample(points_mm: np.ndarray, radius_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """Farthest-point ball sampling: (sample indices (S,), assignment (N,) sample number per point).
+
+    Starts from the point farthest from the centroid and repeatedly adds the point farthest from
+    all samples until every point is within `radius_mm` of one; points go to their nearest sample.
+    """
+    n = len(points_mm)
+    first = int(np.argmax(np.linalg.norm(points_mm - points_mm.mean(axis=0), axis=1)))
+    samples = [first]
+    dist = np.linalg.norm(points_mm - points_mm[first], axis=1)
+    assign = np.zeros(n, dtype=np.int64)
+    while True:
+        far = int(np.argmax(dist))
+        if dist[far] <= radius_mm:
+            break
+        d_new = np.linalg.norm(points_mm - points_mm[far], axis=1)
+        closer = d_new < dist
+        assign[closer] = len(samples)
+        dist = np.where(closer, d_new, dist)
+        samples.append(far)
+    return np.asarray(samples, dtype=np.int64), assign
+
+
+def sample_graph(
+    assign: np.ndarray, neighbor_idx: np.ndarray, node_mm: np.ndarray, max_edge_mm: float | None = None
+) -> sparse.csr_matrix:
+    """(S, S) symmetric sparse graph: samples a, b linked when some point of a has a kNN neighbour
+    (`neighbor_idx` (N, k), on the original surface) in b; weight = distance between samples (mm).
+    Links longer than max_edge_mm (contracted points thrown off the curve) are dropped."""
+    a = np.repeat(assign, neighbor_idx.shape[1])
+    b = assign[neighbor_idx.ravel()]
+    keep = a != b
+    pairs = np.unique(np.sort(np.c_[a[keep], b[keep]], axis=1), axis=0)
+    s = len(node_mm)
+    w = np.linalg.norm(node_mm[pairs[:, 0]] - node_mm[pairs[:, 1]], axis=1) + 1e-9
+    if max_edge_mm is not None:
+        pairs, w = pairs[w <= max_edge_mm], w[w <= max_edge_mm]
+    if len(pairs) == 0:
+        return sparse.csr_matrix((s, s))
+    g = sparse.coo_matrix((w, (pairs[:, 0], pairs[:, 1])), shape=(s, s))
+    return (g + g.T).tocsr()
+
+
+def tree_paths(
+    tree: nx.Graph, pos_mm: np.ndarray, min_branch_mm: float, clearance_mm: float = 8.0
+) -> list[list[int]]:
+    """Split a weighted tree (edge attr 'weight' in mm, node positions pos_mm (S, 3)) into paths.
+
+    The first path is the tree's longest path (its diameter). Then, repeatedly, the branch hanging
+    off the covered nodes that runs longest OUTSIDE the tube of radius `clearance_mm` around them
+    (its own edges with both ends farther than that from every covered node) is added, from its
+    attachment node, while that outside length is at least `min_branch_mm`. Everything else is
+    pruned: side spurs, and strands running alongside the main path inside the same tube (a
+    half-contracted flat tube is a ribbon that a spanning tree crosses in parallel strands).
+    """
+    if tree.number_of_nodes() == 0:
+        return []
+    if tree.number_of_nodes() == 1:
+        return [list(tree.nodes)]
+    start = next(iter(tree.nodes))
+    d0 = nx.single_source_dijkstra_path_length(tree, start)
+    a = max(d0, key=d0.get)
+    dist_a, paths_a = nx.single_source_dijkstra(tree, a)
+    b = max(dist_a, key=dist_a.get)
+    paths = [paths_a[b]]
+    covered = set(paths[0])
+    while True:
+        rest = tree.subgraph(set(tree.nodes) - covered)
+        if rest.number_of_nodes() == 0:
+            break
+        cov_tree = cKDTree(pos_mm[sorted(covered)])
+        best = None
+        for comp in nx.connected_components(rest):
+            attach = next((c for n in comp for c in tree.neighbors(n) if c in covered), None)
+            if attach is None:
+                continue
+            sub = tree.subgraph(set(comp) | {attach})
+            dist, pth = nx.single_source_dijkstra(sub, attach)
+            far = max(dist, key=dist.get)
+            path = pth[far]
+            clear = cov_tree.query(pos_mm[path])[0] > clearance_mm
+            seg = np.linalg.norm(np.diff(pos_mm[path], axis=0), axis=1)
+            outside = float(seg[clear[:-1] & clear[1:]].sum())
+            if best is None or outside > best[0]:
+                best = (outside, path)
+        if best is None or best[0] < min_branch_mm:
+            break
+        paths.append(best[1])
+        covered.update(best[1])
+    return paths
+
+
+def contracted_paths(
+    contracted_mm: np.ndarray, neighbor_idx: np.ndarray, sample_radius_mm: float, prune_length_mm: float,
+    clearance_mm: float = 8.0,
+) -> tuple[list[np.ndarray], np.ndarray, list[list[int]]]:
+    """Paths of one cluster: ([polyline (m, 3) mm of sample positions], assignment (N,), [sample ids]).
+
+    Ball-samples the contracted points, links samples whose members are surface neighbours, keeps a
+    minimum spanning tree per connected part and splits it into paths with `tree_paths`.
+    """
+    samples, assign = ball_sample(contracted_mm, sample_radius_mm)
+    s = len(samples)
+    counts = np.bincount(assign, minlength=s).astype(float)
+    node = np.zeros((s, 3))
+    np.add.at(node, assign, contracted_mm)
+    node /= counts[:, None]
+    g = sample_graph(assign, neighbor_idx, node, max_edge_mm=10.0 * sample_radius_mm)
+    mst = minimum_spanning_tree(g).tocoo()
+    tree = nx.Graph()
+    tree.add_nodes_from(range(s))
+    tree.add_weighted_edges_from(zip(mst.row.tolist(), mst.col.tolist(), mst.data.tolist()))
+    polylines, ids = [], []
+    for comp in nx.connected_components(tree):
+        for p in tree_paths(tree.subgraph(comp), node, prune_length_mm, clearance_mm):
+            polylines.append(node[p])
+            ids.append(list(p))
+    return polylines, assign, ids
+
+
+# ----------------------------------------------------------------------------------------------
+# polyline utilities
+
+
+def arc_length(poly_mm: np.ndarray) -> np.ndarray:
+    """(m,) cumulative arc length (mm) of a polyline (m, 3), starting at 0."""
+    seg = np.linalg.norm(np.diff(poly_mm, axis=0), axis=1)
+    return np.concatenate([[0.0], np.cumsum(seg)])
+
+
+def resample_polyline(poly_mm: np.ndarray, step_mm: float) -> np.ndarray:
+    """Resample a polyline (m, 3) at (nearly) equal arc-length spacing <= step_mm; keeps both ends."""
+    s = arc_length(poly_mm)
+    if len(poly_mm) < 2 or s[-1] <= 0:
+        return poly_mm[:1].copy()
+    n = max(2, int(np.ceil(s[-1] / step_mm)) + 1)
+    t = np.linspace(0.0, s[-1], n)
+    return np.stack([np.interp(t, s, poly_mm[:, k]) for k in range(3)], axis=1)
+
+
+def smooth_polyline(poly_mm: np.ndarray, sigma_mm: float, step_mm: float) -> np.ndarray:
+    """Gaussian smoothing along an equally spaced polyline (spacing step_mm), sigma in mm.
+
+    Ends are padded by point reflection (x(-s) = 2 x(0) - x(s)), which keeps straight and gently
+    curved ends in place instead of pulling them inward.
+    """
+    m = len(poly_mm)
+    if m < 3 or sigma_mm <= 0:
+        return poly_mm.copy()
+    sig = sigma_mm / step_mm
+    pad = min(m - 1, int(np.ceil(4 * sig)))
+    head = 2 * poly_mm[0] - poly_mm[pad:0:-1]
+    tail = 2 * poly_mm[-1] - poly_mm[-2:-pad - 2:-1]
+    ext = np.vstack([head, poly_mm, tail])
+    sm = gaussian_filter1d(ext, sig, axis=0, mode="nearest")
+    return sm[pad:pad + m]
+
+
+def tangents(poly_mm: np.ndarray) -> np.ndarray:
+    """(m, 3) unit tangents (central differences)."""
+    t = np.gradient(poly_mm, axis=0)
+    return t / np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
+
+
+def rotation_minimizing_frames(poly_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(T, N, B) each (m, 3): unit tangent and a rotation-minimizing normal frame, transported by
+    double reflection (Wang et al. 2008), so cross-section coordinates of neighbouring nodes line up."""
+    t = tangents(poly_mm)
+    m = len(poly_mm)
+    ref = np.array([0.0, 0.0, 1.0]) if abs(t[0, 2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    n0 = np.cross(t[0], ref)
+    e = (n0 / np.linalg.norm(n0)).tolist()
+    tl = t.tolist()
+    out = [e]
+    for i in range(m - 1):
+        t0, t1 = tl[i], tl[i + 1]
+        b = [t0[0] + t1[0], t0[1] + t1[1], t0[2] + t1[2]]
+        bb = b[0] * b[0] + b[1] * b[1] + b[2] * b[2]
+        if bb > 1e-12:  # reflection in the plane normal to t0 + t1, then in the plane normal to t1
+            f = 2.0 * (b[0] * e[0] + b[1] * e[1] + b[2] * e[2]) / bb
+            e = [e[0] - f * b[0], e[1] - f * b[1], e[2] - f * b[2]]
+            f = 2.0 * (e[0] * t1[0] + e[1] * t1[1] + e[2] * t1[2])
+            e = [e[0] - f * t1[0], e[1] - f * t1[1], e[2] - f * t1[2]]
+        out.append(e)
+    n = np.asarray(out)
+    n -= (n * t).sum(1, keepdims=True) * t
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    return t, n, np.cross(t, n)
+
+
+def project_to_polyline(points_mm: np.ndarray, poly_mm: np.ndarray, fine_mm: float = 0.1):
+    """Closest-point projection of points (N, 3) onto a polyline (m, 3).
+
+    Returns (s (N,) arc length of the foot point in mm, foot index (N,) into a resampled copy at
+    `fine_mm`, dist (N,) mm, fine polyline (F, 3), fine arc length (F,)).
+    """
+    fine = resample_polyline(poly_mm, fine_mm)
+    s_f = arc_length(fine)
+    d, j = cKDTree(fine).query(points_mm, k=1)
+    return s_f[j], j, d, fine, s_f
+
+
+def menger_curvature(poly_mm: np.ndarray, step_mm: float, baseline_mm: float = 5.0) -> np.ndarray:
+    """(m,) curvature in 1/mm from the circle through nodes i-k, i, i+k (k x step ~ baseline_mm);
+    0 where the triple does not fit."""
+    m = len(poly_mm)
+    k = max(1, int(round(baseline_mm / step_mm)))
+    kap = np.zeros(m)
+    if m < 2 * k + 1:
+        return kap
+    a, b, c = poly_mm[:-2 * k], poly_mm[k:-k], poly_mm[2 * k:]
+    ab, bc, ca = b - a, c - b, a - c
+    cross = np.linalg.norm(np.cross(ab, bc), axis=1)
+    denom = np.linalg.norm(ab, axis=1) * np.linalg.norm(bc, axis=1) * np.linalg.norm(ca, axis=1)
+    kap[k:-k] = np.where(denom > 1e-12, 2.0 * cross / np.maximum(denom, 1e-12), 0.0)
+    return kap
+
+
+# ----------------------------------------------------------------------------------------------
+# refinement on the original surface points
+
+
+def fit_ellipse_center(uv: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, float, float] | None:
+    """Weighted algebraic conic fit of 2D points (n, 2); returns (centre (2,), semi-axis a, b) in the
+    points' units, or None when the fit is not a proper ellipse.
+
+    Minimises sum_i w_i (A u^2 + B uv + C v^2 + D u + E v + F)^2 with ||(A..F)|| = 1 (smallest right
+    singular vector), after centring/scaling the points for conditioning.
+    """
+    if len(uv) < 6:
+        return None
+    mu = (w[:, None] * uv).sum(0) / w.sum()
+    sc = np.sqrt((w * ((uv - mu) ** 2).sum(1)).sum() / w.sum())
+    if not np.isfinite(sc) or sc <= 0:
+        return None
+    x, y = ((uv - mu) / sc).T
+    design = np.stack([x * x, x * y, y * y, x, y, np.ones_like(x)], axis=1) * np.sqrt(w)[:, None]
+    try:
+        _, _, vt = np.linalg.svd(design, full_matrices=False)
+    except np.linalg.LinAlgError:
+        return None
+    A, B, C, D, E, F = vt[-1]
+    disc = B * B - 4 * A * C
+    if disc >= 0:
+        return None
+    M = np.array([[2 * A, B], [B, 2 * C]])
+    c = np.linalg.solve(M, [-D, -E])
+    # semi-axes: A' x^2 + ... = -F' at the centre
+    f0 = A * c[0] ** 2 + B * c[0] * c[1] + C * c[1] ** 2 + D * c[0] + E * c[1] + F
+    ev = np.linalg.eigvalsh(np.array([[A, B / 2], [B / 2, C]]))
+    if f0 == 0 or np.any(-f0 / ev <= 0):
+        return None
+    axes = np.sqrt(-f0 / ev) * sc
+    return c * sc + mu, float(axes.max()), float(axes.min())
+
+
+def conic_centres(scatter: np.ndarray, scale: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Batched algebraic conic fit from weighted scatter matrices.
+
+    scatter: (m, 6, 6) sums of w d d^T with d = (x^2, xy, y^2, x, y, 1) of points (x, y) = uv / scale.
+    Returns (centres (m, 2), semi-axes (m, 2) major/minor, valid (m,) bool), in uv units; a fit is
+    valid when the conic is a real ellipse.
+    """
+    m = len(scatter)
+    _, vec = np.linalg.eigh(scatter)
+    A, B, C, D, E, F = np.moveaxis(vec[:, :, 0], 1, 0)
+    det = 4 * A * C - B * B
+    ok = det > 1e-12 * np.maximum(1.0, (A * A + C * C))
+    safe = np.where(ok, det, 1.0)
+    cx = (B * E - 2 * C * D) / safe
+    cy = (B * D - 2 * A * E) / safe
+    f0 = A * cx * cx + B * cx * cy + C * cy * cy + D * cx + E * cy + F
+    tr, dt = A + C, A * C - B * B / 4
+    disc = np.sqrt(np.maximum(tr * tr / 4 - dt, 0.0))
+    ev = np.stack([tr / 2 - disc, tr / 2 + disc], axis=1)  # eigenvalues of [[A, B/2], [B/2, C]]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ax2 = -f0[:, None] / ev
+    ok &= np.all(ax2 > 0, axis=1) & np.isfinite(ax2).all(axis=1)
+    axes = np.sqrt(np.where(ok[:, None], ax2, 0.0)) * scale
+    axes = np.sort(axes, axis=1)[:, ::-1]
+    centres = np.stack([cx, cy], axis=1) * scale
+    centres[~ok] = 0.0
+    return centres, axes, ok if m else np.zeros(0, bool)
+
+
+def fit_ellipse_center(uv: np.ndarray, w: np.ndarray | None = None) -> tuple[np.ndarray, float, float] | None:
+    """Weighted algebraic conic fit of 2D points (n, 2): (centre (2,), major, minor semi-axis) in
+    the points' units, or None when the best conic is not an ellipse. Minimises
+    sum_i w_i (A u^2 + B uv + C v^2 + D u + E v + F)^2 with ||(A..F)|| = 1 (points pre-scaled)."""
+    w = np.ones(len(uv)) if w is None else np.asarray(w, dtype=np.float64)
+    if len(uv) < 6:
+        return None
+    mu = (w[:, None] * uv).sum(0) / w.sum()
+    sc = float(np.sqrt((w * ((uv - mu) ** 2).sum(1)).sum() / w.sum())) or 1.0
+    x, y = ((uv - mu) / sc).T
+    d = np.stack([x * x, x * y, y * y, x, y, np.ones_like(x)], axis=1)
+    c, ax, ok = conic_centres((d.T * w) @ d[None], sc)
+    return (c[0] + mu, float(ax[0, 0]), float(ax[0, 1])) if ok[0] else None
+
+
+def window_matrix(s_nodes: np.ndarray, s_points: np.ndarray, sigma_mm: float) -> sparse.csr_matrix:
+    """(m, n) sparse Gaussian weights exp(-(s_node - s_point)^2 / (2 sigma^2)), cut at 3 sigma (mm)."""
+    order = np.argsort(s_points, kind="stable")
+    ss = s_points[order]
+    lo = np.searchsorted(ss, s_nodes - 3 * sigma_mm, side="left")
+    hi = np.searchsorted(ss, s_nodes + 3 * sigma_mm, side="right")
+    cnt = hi - lo
+    rows = np.repeat(np.arange(len(s_nodes)), cnt)
+    pos = np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt) + np.repeat(lo, cnt)
+    cols = order[pos]
+    vals = np.exp(-0.5 * ((s_nodes[rows] - s_points[cols]) / sigma_mm) ** 2)
+    return sparse.csr_matrix((vals, (rows, cols)), shape=(len(s_nodes), len(s_points)))
+
+
+def recentre_polyline(
+    poly_mm: np.ndarray,
+    points_mm: np.ndarray,
+    step_mm: float,
+    sigma_mm: float,
+    weights: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Move each node to the centre of its tube cross-section; returns (polyline (m, 3), minor
+    semi-axis per node (m,) mm, NaN where no ellipse was fitted).
+
+    Surface points are projected onto the curve; their offsets, expressed in rotation-minimizing
+    frames, are pooled over a Gaussian window (sigma_mm, cut at 3 sigma) of arc length around each
+    node and fitted by an ellipse (for a tube with elliptical sections the fitted centre is the axis
+    even when the sampling is uneven). Where no plausible ellipse fits (fewer than 8 points, not an
+    ellipse, centre off by more than 0.6 x the spread of the points, major axis > 2 x spread) the
+    node moves to the (`weights`-weighted, e.g. area) centroid instead. Points whose foot is an end
+    of the curve (caps, or the part beyond a short end) are left out. This removes the
+    contraction's bias toward the thick side of the tube.
+    """
+    m = len(poly_mm)
+    s_p, j, _, fine, s_f = project_to_polyline(points_mm, poly_mm)
+    interior = (j > 0) & (j < len(fine) - 1)
+    pts, s_p, j = points_mm[interior], s_p[interior], j[interior]
+    t_fine = tangents(fine)
+    _, Nn, Bn = rotation_minimizing_frames(poly_mm)
+    s_nodes = arc_length(poly_mm)
+    node_of = np.clip(np.searchsorted(s_nodes, s_p), 0, m - 1)
+    off = pts - fine[j]
+    off -= (off * t_fine[j]).sum(1, keepdims=True) * t_fine[j]
+    uv = np.stack([(off * Nn[node_of]).sum(1), (off * Bn[node_of]).sum(1)], axis=1)
+    W = window_matrix(s_nodes, s_p, sigma_mm)
+    count = np.diff(W.indptr)
+    wsum = np.asarray(W.sum(1)).ravel()
+    spread = np.sqrt((W @ (uv ** 2).sum(1)) / np.maximum(wsum, 1e-12))
+    scale = float(np.median(spread[count > 0])) if (count > 0).any() else 1.0
+    x, y = (uv / scale).T
+    d = np.stack([x * x, x * y, y * y, x, y, np.ones_like(x)], axis=1)
+    scatter = (W @ (d[:, :, None] * d[:, None, :]).reshape(len(d), 36)).reshape(m, 6, 6)
+    centres, axes, ok = conic_centres(scatter, scale)
+    ok &= (count >= 8) & (np.linalg.norm(centres, axis=1) < 0.6 * spread) & (axes[:, 0] < 2.0 * spread)
+    ww = W if weights is None else W @ sparse.diags(weights[interior])
+    centroid = (ww @ uv) / np.maximum(np.asarray(ww.sum(1)).ravel(), 1e-12)[:, None]
+    c = np.where(ok[:, None], centres, centroid)
+    c[count < 3] = 0.0
+    out = poly_mm + c[:, :1] * Nn + c[:, 1:] * Bn
+    minor = np.where(ok, axes[:, 1], np.nan)
+    return out, minor
+
+
+def end_cap_offset(
+    end_mm: np.ndarray, tangent: np.ndarray, points_mm: np.ndarray, radius_mm: float
+) -> float | None:
+    """Signed distance (mm) along the outward end tangent from `end_mm` to the cap centre.
+
+    Casts a ray from the end along `tangent`; the surface points near the ray (perpendicular
+    distance rho < 0.9 x radius, in front of the end) are taken as the cap. Each gives a centre
+    estimate z - sqrt(r^2 - rho^2) (z: its height along the ray), i.e. where the centre of a
+    spherical cap of the local radius r would be; the apex of the cap minus the local radius for a
+    capsule-like end. Returns the median of the estimates from the outermost points (within r/2 of
+    the farthest one), or None when the ray meets no surface point.
+    """
+    rel = points_mm - end_mm
+    z = rel @ tangent
+    rho = np.linalg.norm(rel - z[:, None] * tangent, axis=1)
+    cand = (rho < 0.9 * radius_mm) & (z > -2.0 * radius_mm)
+    if not cand.any():
+        return None
+    est = z[cand] - np.sqrt(np.maximum(radius_mm ** 2 - rho[cand] ** 2, 0.0))
+    top = est >= est.max() - 0.5 * radius_mm
+    return float(np.median(est[top]))
+
+
+def adjust_ends(
+    poly_mm: np.ndarray, points_mm: np.ndarray, radius_head_mm: float, radius_tip_mm: float,
+    step_mm: float, tangent_mm: float = 6.0, extend: tuple[bool, bool] = (True, True),
+) -> np.ndarray:
+    """Extend (or trim) both ends of a polyline along their tangents to the cap centres.
+
+    The end tangent is taken over the last `tangent_mm` of the curve; see `end_cap_offset`.
+    extend: (head, tip) which ends to adjust. Returns the new polyline resampled at `step_mm`.
+    """
+    poly = resample_polyline(poly_mm, step_mm)
+    for end in (0, 1):
+        if not extend[end]:
+            continue
+        if end == 1:
+            poly = poly[::-1]
+        s = arc_length(poly)
+        if s[-1] < 2 * step_mm:
+            poly = poly[::-1] if end == 1 else poly
+            continue
+        k = int(np.searchsorted(s, min(tangent_mm, 0.5 * s[-1])))
+        k = max(k, 1)
+        t = poly[0] - poly[k]
+        t /= np.linalg.norm(t)
+        r = radius_head_mm if end == 0 else radius_tip_mm
+        off = end_cap_offset(poly[0], t, points_mm, r)
+        if off is not None:
+            if off > 0:
+                n_new = int(np.ceil(off / step_mm))
+                ext = poly[0] + np.outer(np.linspace(off, 0, n_new + 1)[:-1], t)
+                poly = np.vstack([ext, poly])
+            elif off < 0:
+                cut = min(-off, 0.5 * s[-1])
+                keep = s >= cut
+                new0 = np.array([np.interp(cut, s, poly[:, q]) for q in range(3)])
+                poly = np.vstack([new0, poly[keep]])
+        if end == 1:
+            poly = poly[::-1]
+    return resample_polyline(poly, step_mm)

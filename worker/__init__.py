@@ -1,0 +1,1 @@
+"""RibPull Celery worker: `celery -A worker.celery_app worker` runs `worker.tasks.run_job`."""
