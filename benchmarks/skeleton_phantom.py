@@ -24,9 +24,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from ribpull_core.phantom import PhantomConfig, make_phantom, sample_surface, voxelize  # noqa: E402
-from ribpull_core.skeleton import RibCurve, Skeleton, skeleton_metrics, skeletonize  # noqa: E402
-from ribpull_core.skeleton.labels import geometric_labels, orient_head_first  # noqa: E402
+from ribpull_core.phantom import PhantomConfig, make_phantom, sample_surface, voxelize
+from ribpull_core.skeleton import RibCurve, Skeleton, skeleton_metrics, skeletonize
+from ribpull_core.skeleton.labels import geometric_labels, orient_head_first
 
 TARGETS = {"mean_dist_mm": 0.45, "coverage": 0.98, "n_paths": 24, "n_branch_nodes": 0, "n_cycles": 0,
            "label_accuracy": 1.0, "time_s": 15.0}

@@ -284,35 +284,21 @@ def _write_surface_artifacts(cloud, field, frame, fit_config, tmp: Path, report:
     return artifacts
 
 
-def _skeleton_of(mesh, cloud, report: _Reporter):
-    """Skeleton of the reconstruction; input labels (NIfTI) carried over by nearest input point."""
-    from scipy.spatial import cKDTree
-
+def _skeleton_of(mesh, cloud, report: _Reporter, n_points: int = 20_000):
+    """Skeleton of the reconstruction from points sampled on it. For labelled inputs (NIfTI label
+    maps) each sample takes the label of its nearest input point, so curves are named by the input."""
     from .skeleton import skeleton_from_mesh
+
+    def on_progress(fraction, message=""):
+        report("skeleton", fraction, message=message)
 
     kw = {}
     if cloud.labels is not None and len(np.unique(cloud.labels)) > 1:
+        from scipy.spatial import cKDTree
+
         tree = cKDTree(cloud.points)
-
-        def labels_for(points_mm):
-            return cloud.labels[tree.query(points_mm, workers=-1)[1]]
-
-        kw["point_labels_fn"] = labels_for
-    return _skeleton_from_mesh_with_labels(skeleton_from_mesh, mesh, cloud, kw, report)
-
-
-def _skeleton_from_mesh_with_labels(skeleton_from_mesh, mesh, cloud, kw, report: _Reporter):
-    import trimesh
-
-    from .skeleton import skeletonize
-
-    labels_for = kw.pop("point_labels_fn", None)
-    if labels_for is None:
-        return skeleton_from_mesh(mesh, n_points=20_000, progress=lambda f, msg="": report("skeleton", f, message=msg))
-    rng = np.random.default_rng(0)
-    pts, face = trimesh.sample.sample_surface(mesh, 20_000, seed=rng)
-    return skeletonize(pts, normals=mesh.face_normals[face], point_labels=labels_for(pts), label_names=cloud.label_names,
-                       progress=lambda f, msg="": report("skeleton", f, message=msg))
+        kw = {"point_labels_fn": lambda pts: cloud.labels[tree.query(pts, workers=-1)[1]], "label_names": cloud.label_names}
+    return skeleton_from_mesh(mesh, n_points=n_points, progress=on_progress, **kw)
 
 
 def _polylines(skeleton) -> list[np.ndarray]:

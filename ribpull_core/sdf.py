@@ -19,6 +19,7 @@ from scipy.spatial import cKDTree
 from .config import SdfConfig
 from .frame import UnitFrame
 from .mesh import inside_scores
+from .metrics import morton_order
 from .methods.base import FittedField
 from .pointcloud import PointCloud
 
@@ -79,43 +80,139 @@ def voxel_centers_mm(shape: tuple[int, int, int], affine: np.ndarray, start: int
 # --- unsigned distance to a mesh ---------------------------------------------------------------------
 
 class SurfaceDistance:
-    """Fast unsigned distance (mm) to a triangle mesh: kd-tree over dense surface samples + vertices,
-    refined near the surface by the exact distance to the triangle of the nearest sample.
+    """Fast unsigned distance (mm) from any points to a triangle mesh in mm.
 
-    Accuracy: the result is always >= the true distance (it is a distance to a surface point). It is
-    exact when the nearest sample lies on the closest triangle, which is the usual case near the
-    surface; otherwise the error is below the sample spacing s = sqrt(area / n) (about 0.5 mm for a
-    300,000 mm² ribcage at 1M samples) and shrinks like s²/(2·distance) away from the surface.
-    Build once, call many times (the service keeps one per job).
+    A kd-tree over dense surface samples is fast only close to the surface: at points roughly
+    equidistant from much of it (the centre of the thorax, anything far away) a nearest-neighbour
+    search visits most of the samples. So:
+    - a closest-point grid (spacing `grid_mm`, default longest side of the mesh box / 128, covering
+      the mesh box ± `margin` × its longest side and `cover_mm` if given) stores, at nodes near the
+      surface, the exact closest point on the triangle of the node's nearest sample; the other nodes
+      take the closest point of the nearest near node (EDT feature transform), improved by two
+      relaxation sweeps over the 6 axis neighbours;
+    - a point inside the grid gets the smallest distance to the stored closest points of its cell's
+      8 nodes; within 3 cells of the surface also the exact distance to the triangle of its nearest
+      sample (kd-tree, fast there); outside the grid, a kd-tree over 8192 samples (slow-case proof)
+      refined by the triangle of the sample found.
+
+    Accuracy: always an upper bound of the true distance (a distance to a point on the mesh). Near
+    the surface exact unless the nearest sample is not on the closest triangle (error then below the
+    sample spacing sqrt(area / n_samples)); farther out the closest-point propagation errs by a
+    fraction of a grid cell. Measured on a 75 mm sphere (grid 1.17 mm, 1M samples, 1M points
+    uniform in ±110 mm): mean error 0.03 mm, max 0.43 mm; within 3 mm of the surface mean 0.004 mm,
+    max 0.23 mm. Build once (seconds), call many times.
     """
 
-    def __init__(self, mesh_mm: trimesh.Trimesh, n_samples: int = 1_000_000, seed: int = 0):
+    def __init__(
+        self,
+        mesh_mm: trimesh.Trimesh,
+        n_samples: int = 1_000_000,
+        seed: int = 0,
+        grid_mm: float | None = None,
+        cover_mm: tuple[np.ndarray, np.ndarray] | None = None,
+        max_nodes: int = 8_000_000,
+        margin: float = 0.1,
+    ):
         if len(mesh_mm.faces) == 0:
             raise ValueError("cannot measure distances to an empty mesh")
         pts, fidx = trimesh.sample.sample_surface(mesh_mm, int(n_samples), seed=seed)
+        faces = np.asarray(mesh_mm.faces)
         vface = np.empty(len(mesh_mm.vertices), dtype=np.int64)
         for j in range(3):
-            vface[mesh_mm.faces[:, j]] = np.arange(len(mesh_mm.faces))
+            vface[faces[:, j]] = np.arange(len(faces))
         used = np.zeros(len(mesh_mm.vertices), dtype=bool)
-        used[mesh_mm.faces.ravel()] = True
-        self.points = np.concatenate([np.asarray(pts), mesh_mm.vertices[used]])
+        used[faces.ravel()] = True
+        self.points = np.concatenate([np.asarray(pts, dtype=np.float64), mesh_mm.vertices[used]])
         self.face_of = np.concatenate([np.asarray(fidx, dtype=np.int64), vface[used]])
+        o = morton_order(self.points)  # spatially sorted: much faster kd-tree
+        self.points, self.face_of = self.points[o], self.face_of[o]
         self.triangles = np.asarray(mesh_mm.triangles, dtype=np.float64)
         self.tree = cKDTree(self.points)
+        sub = np.random.default_rng(seed).choice(len(self.points), min(8192, len(self.points)), replace=False)
+        self.coarse_index = sub
+        self.coarse_tree = cKDTree(self.points[sub])
         self.spacing_mm = math.sqrt(float(mesh_mm.area) / max(1, len(self.points)))
         self.bounds_mm = np.asarray(mesh_mm.bounds, dtype=np.float64)
+        ext = float((self.bounds_mm[1] - self.bounds_mm[0]).max())
+        lo = self.bounds_mm[0] - margin * ext
+        hi = self.bounds_mm[1] + margin * ext
+        if cover_mm is not None:
+            lo = np.minimum(lo, np.asarray(cover_mm[0], dtype=np.float64))
+            hi = np.maximum(hi, np.asarray(cover_mm[1], dtype=np.float64))
+        g = float(grid_mm) if grid_mm else max(ext / 128.0, 1e-6)
+        while np.prod(np.ceil((hi - lo) / g) + 1) > max_nodes:
+            g *= 1.1
+        self.grid_mm = g
+        self.origin = lo
+        self.nodes = np.ceil((hi - lo) / g).astype(np.int64) + 1
+        self._build_grid()
 
-    def __call__(self, points_mm: np.ndarray, refine_within_mm: float | None = None) -> np.ndarray:
-        """(N, 3) mm -> (N,) float64 unsigned distance in mm. Points closer than refine_within_mm
-        (default 4 sample spacings) get the exact distance to their nearest sample's triangle."""
+    def _nearest_surface_point(self, p: np.ndarray) -> np.ndarray:
+        """(M, 3) mm near the surface -> (M, 3) closest point on the triangle of the nearest sample."""
+        _, i = self.tree.query(p, k=1, workers=-1)
+        return trimesh.triangles.closest_point(self.triangles[self.face_of[i]], p)
+
+    def _build_grid(self) -> None:
+        shape = tuple(int(n) for n in self.nodes)
+        near = np.zeros(shape, dtype=bool)
+        c = np.floor((self.points - self.origin) / self.grid_mm).astype(np.int64)
+        c = np.clip(c, 0, self.nodes - 2)
+        for off in np.ndindex(2, 2, 2):
+            near[c[:, 0] + off[0], c[:, 1] + off[1], c[:, 2] + off[2]] = True
+        near = ndimage.binary_dilation(near, structure=ndimage.generate_binary_structure(3, 3))
+        idx = np.argwhere(near)
+        cp = np.zeros(shape + (3,), dtype=np.float32)
+        for s in range(0, len(idx), CHUNK):
+            ii = idx[s : s + CHUNK]
+            cp[ii[:, 0], ii[:, 1], ii[:, 2]] = self._nearest_surface_point(self.origin + ii * self.grid_mm)
+        ind = ndimage.distance_transform_edt(~near, return_distances=False, return_indices=True)
+        cp = cp[ind[0], ind[1], ind[2]]
+        del ind
+        axes = [self.origin[k] + np.arange(shape[k]) * self.grid_mm for k in range(3)]
+        node = np.stack(np.meshgrid(*axes, indexing="ij"), -1).astype(np.float32)
+        best = ((node - cp) ** 2).sum(-1)
+        for _ in range(2):  # relax along the 6 axis neighbours: a neighbour's closest point may be closer
+            for axis in range(3):
+                for sgn in (1, -1):
+                    n = shape[axis]
+                    dst = [slice(None)] * 3
+                    src = [slice(None)] * 3
+                    dst[axis], src[axis] = (slice(0, n - 1), slice(1, n)) if sgn > 0 else (slice(1, n), slice(0, n - 1))
+                    dst, src = tuple(dst), tuple(src)
+                    cand = cp[src]
+                    dc = ((node[dst] - cand) ** 2).sum(-1)
+                    better = dc < best[dst]
+                    best[dst][better] = dc[better]
+                    cp[dst][better] = cand[better]
+        self.cp_grid = cp
+
+    def __call__(self, points_mm: np.ndarray) -> np.ndarray:
+        """(N, 3) mm -> (N,) float64 unsigned distance in mm."""
         p = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
-        d, i = self.tree.query(p, k=1, workers=-1)
-        r = 4.0 * self.spacing_mm if refine_within_mm is None else refine_within_mm
-        near = np.flatnonzero(d < r)
+        out = np.empty(len(p))
+        step = CHUNK // 4
+        for s in range(0, len(p), step):
+            out[s : s + step] = self._distance(p[s : s + step])
+        return out
+
+    def _distance(self, p: np.ndarray) -> np.ndarray:
+        f = (p - self.origin) / self.grid_mm
+        ingrid = np.all((f >= 0) & (f <= self.nodes - 1), axis=1)
+        c = np.clip(np.floor(f).astype(np.int64), 0, self.nodes - 2)
+        d = np.full(len(p), np.inf)
+        for off in np.ndindex(2, 2, 2):
+            cp = self.cp_grid[c[:, 0] + off[0], c[:, 1] + off[1], c[:, 2] + off[2]]
+            np.minimum(d, np.linalg.norm(p - cp, axis=1), out=d)
+        near = np.flatnonzero(ingrid & (d < 3.0 * self.grid_mm))
         if len(near):
-            tri = self.triangles[self.face_of[i[near]]]
-            cp = trimesh.triangles.closest_point(tri, p[near])
+            cp = self._nearest_surface_point(p[near])
             d[near] = np.minimum(d[near], np.linalg.norm(p[near] - cp, axis=1))
+        far = np.flatnonzero(~ingrid)
+        if len(far):
+            _, i = self.coarse_tree.query(p[far], k=1, workers=-1)
+            tri = self.triangles[self.face_of[self.coarse_index[i]]]
+            cp = trimesh.triangles.closest_point(tri, p[far])
+            d[far] = np.minimum(d[far], np.linalg.norm(p[far] - cp, axis=1))
         return d
 
     def outside_bounds(self, points_mm: np.ndarray) -> np.ndarray:
@@ -135,10 +232,13 @@ def signed_distance_volume(
     n_samples: int = 1_000_000,
     votes: int = 16,
     seed: int = 0,
+    grid_mm: float | None = None,
 ) -> np.ndarray:
     """(shape) float32 signed distance in mm at the voxel centres (affine: voxel -> mm), negative inside.
 
-    |value| = `SurfaceDistance` to mesh_mm (see its accuracy). Sign: inside_score > field.level.
+    |value| = `SurfaceDistance` to mesh_mm (see its accuracy; its closest-point grid has spacing
+    grid_mm, default the smallest voxel spacing but at least the mesh's longest side / 256, and
+    covers the volume). Sign: inside_score > field.level.
     The network is only queried where it matters: voxels within 1.5 voxel diagonals of the surface
     get the field's own sign; the other voxels form connected regions (6-connectivity) that cannot
     cross the surface, and each takes the majority sign of the field at up to `votes` random voxels
@@ -147,8 +247,16 @@ def signed_distance_volume(
     """
     shape = tuple(int(n) for n in shape)
     n = int(np.prod(shape))
-    dist = SurfaceDistance(mesh_mm, n_samples=n_samples, seed=seed)
-    band = 1.5 * float(np.linalg.norm(np.linalg.norm(affine[:3, :3], axis=0)))
+    corners = np.array(list(np.ndindex(2, 2, 2)), dtype=np.float64) * (np.array(shape) - 1)
+    corners = corners @ affine[:3, :3].T + affine[:3, 3]
+    spacing = np.linalg.norm(affine[:3, :3], axis=0)
+    if grid_mm is None:
+        grid_mm = max(float(spacing.min()), float((mesh_mm.bounds[1] - mesh_mm.bounds[0]).max()) / 256.0)
+    dist = SurfaceDistance(
+        mesh_mm, n_samples=n_samples, seed=seed, grid_mm=grid_mm, margin=0.0,
+        cover_mm=(corners.min(0), corners.max(0)),
+    )
+    band = 1.5 * float(np.linalg.norm(spacing))
     absd = np.empty(n, dtype=np.float32)
     outbox = np.empty(n, dtype=bool)
     for s in range(0, n, CHUNK):
@@ -232,7 +340,11 @@ def query_field(
         "inside": ev["inside_score"] > float(field.level),
     }
     if mesh_mm is not None:
-        dist = mesh_mm if isinstance(mesh_mm, SurfaceDistance) else SurfaceDistance(mesh_mm, n_samples=200_000)
+        if isinstance(mesh_mm, SurfaceDistance):
+            dist = mesh_mm
+        else:  # a light one; build a SurfaceDistance once and pass it when querying repeatedly
+            ext = float((mesh_mm.bounds[1] - mesh_mm.bounds[0]).max())
+            dist = SurfaceDistance(mesh_mm, n_samples=200_000, grid_mm=max(ext / 64.0, 1e-6))
         d = dist(p)
         neg = out["inside"] & ~dist.outside_bounds(p)
         out["sdf_mm"] = np.where(neg, -d, d)

@@ -30,7 +30,7 @@ MAX_QUERY_POINTS = 5000
 #: a few seconds per job on 2 cores (the smoke preset)
 SMOKE = {"preset": "smoke"}
 #: long enough to be caught mid-fit (cancel / kill tests)
-LONG = {"preset": "smoke", "iterations": int(os.environ.get("RIBPULL_TEST_LONG_ITERATIONS", "3000"))}
+LONG = {"preset": "smoke", "iterations": int(os.environ.get("RIBPULL_TEST_LONG_ITERATIONS", "400"))}
 
 
 class Stack:

@@ -6,6 +6,7 @@ tests use ribpull_core.phantom.
 
 from __future__ import annotations
 
+import itertools
 import json
 
 import numpy as np
@@ -16,12 +17,21 @@ from scipy.spatial import cKDTree
 
 from ribpull_core.errors import RibPullInputError
 from ribpull_core.skeleton import (
-    Skeleton, SkeletonConfig, export_skeleton, laplacian_contraction, skeleton_from_mesh,
-    skeleton_metrics, skeletonize,
+    Skeleton,
+    SkeletonConfig,
+    export_skeleton,
+    laplacian_contraction,
+    skeleton_from_mesh,
+    skeleton_metrics,
+    skeletonize,
 )
 from ribpull_core.skeleton.curves import arc_length, resample_polyline, rotation_minimizing_frames
 from ribpull_core.skeleton.labels import (
-    geometric_labels, label_name, normalise_rib_name, number_by_height, totalseg_rib_name,
+    geometric_labels,
+    label_name,
+    normalise_rib_name,
+    number_by_height,
+    totalseg_rib_name,
 )
 
 # ------------------------------------------------------------------------------------ helpers
@@ -102,7 +112,7 @@ def test_contraction_moves_points_onto_the_axis(straight_case):
     (c,) = info["components"]
     assert 1 <= c["iterations"] <= 20
     ratios = [h["ring_ratio"] for h in c["history"] if not h.get("rejected")]
-    assert all(b <= a for a, b in zip(ratios, ratios[1:])) and ratios[-1] < 0.8
+    assert all(b <= a for a, b in itertools.pairwise(ratios)) and ratios[-1] < 0.8
     assert contracted.shape == pts.shape and np.isfinite(contracted).all()
 
 
@@ -148,7 +158,7 @@ def test_curved_elliptical_tube_gives_one_path_on_the_axis():
     assert m["mean_dist_mm"] < 0.1 * 3.5 and m["p95_dist_mm"] < 0.5 and m["coverage"] > 0.98
     assert skel.curves[0].length_mm == pytest.approx(arc_length(axis)[-1], rel=0.02)
     assert skel.curves[0].max_curvature_per_mm == pytest.approx(1 / 60.0, rel=0.3)
-    assert progress[-1] == 1.0 and all(b >= a for a, b in zip(progress, progress[1:]))
+    assert progress[-1] == 1.0 and all(b >= a for a, b in itertools.pairwise(progress))
 
 
 def test_two_tubes_give_two_paths():
@@ -163,6 +173,26 @@ def test_two_tubes_give_two_paths():
     for c in skel.curves:  # each curve lies along one tube only
         d1, d2 = axis_distance(skel.curve_points(c), ax1), axis_distance(skel.curve_points(c), ax2)
         assert (d1 < 1.5).all() or (d2 < 1.5).all()
+
+
+def test_fused_t_junction_keeps_a_real_branch():
+    main, side = straight(120, (0, 0, 0), (1, 0, 0)), straight(60, (60, 0, 0), (0, 1, 0))
+
+    def inside(p, axis, r=4.0):  # points of one tube's surface that lie inside the other tube
+        length = np.linalg.norm(axis[-1] - axis[0])
+        d = (axis[-1] - axis[0]) / length
+        t = (p - axis[0]) @ d
+        return (np.linalg.norm(p - axis[0] - np.outer(t, d), axis=1) < r) & (t > 0) & (t < length)
+
+    p1, _ = sample(tube(main, 4, 4), 3000, 1)
+    p2, _ = sample(tube(side, 4, 4), 1600, 2)
+    pts = np.vstack([p1[~inside(p1, side)], p2[~inside(p2, main)]])
+    skel = skeletonize(pts)
+    m = skeleton_metrics(skel, {"main": main, "side": side})
+    assert (m["n_components"], m["n_branch_nodes"], m["n_paths"], m["n_cycles"]) == (1, 1, 3, 0)
+    assert len(skel.curves) == 2 and skel.curves[1].label.endswith("_branch")
+    assert skel.curves[0].length_mm == pytest.approx(120, abs=3) and m["coverage"] > 0.98
+    assert m["mean_dist_mm"] < 0.3
 
 
 def test_skeleton_from_mesh_radius_comes_from_the_mesh():
@@ -271,7 +301,7 @@ def test_point_labels_name_the_curves(phantom_mod):
 
 
 def test_export_files(straight_case, tmp_path):
-    axis, mesh, pts, nrm = straight_case
+    _, mesh, pts, nrm = straight_case
     skel = skeletonize(pts, normals=nrm)
     paths = export_skeleton(skel, tmp_path, mesh_mm=mesh)
     assert set(paths) == {"skeleton.json", "skeleton.glb", "skeleton.obj", "scene.glb"}
@@ -310,7 +340,8 @@ def test_metrics_of_the_truth_itself_and_ribseg_layout():
     assert (m["n_paths"], m["n_branch_nodes"], m["n_cycles"]) == (2, 0, 0)
     assert m["label_accuracy"] == 0.5  # the second curve lies on L2 but is called L1
     ribseg = np.full((24, 500, 3), -1.0)
-    ribseg[0], ribseg[5] = resample_polyline(a, 0.1)[:500], resample_polyline(b, 0.1)[:500]
+    x = np.linspace(0, 50, 500)
+    ribseg[0], ribseg[5] = np.c_[x, 0 * x, 0 * x], np.c_[x, 0 * x + 20, 0 * x]
     m2 = skeleton_metrics(skel, ribseg)
     assert m2["label_accuracy"] is None and m2["mean_dist_mm"] < 1e-6
     # a closed loop counts as one path and one cycle; a Y has one branch node and three paths
@@ -318,6 +349,6 @@ def test_metrics_of_the_truth_itself_and_ribseg_layout():
                     np.c_[np.arange(10), (np.arange(10) + 1) % 10], np.ones(10))
     m3 = skeleton_metrics(loop, {"x": a})
     assert (m3["n_paths"], m3["n_cycles"]) == (1, 1)
-    y = Skeleton(np.eye(4), [[0, 1], [0, 2], [0, 3]], np.ones(4))
+    y = Skeleton(np.eye(4)[:, :3], [[0, 1], [0, 2], [0, 3]], np.ones(4))
     m4 = skeleton_metrics(y, {"x": a})
     assert (m4["n_paths"], m4["n_branch_nodes"], m4["n_cycles"]) == (3, 1, 0)

@@ -56,6 +56,7 @@ def configure_torch() -> None:
     import torch
 
     n = settings.effective_torch_threads
+    os.environ["RIBPULL_TORCH_THREADS"] = str(n)  # run_pipeline reads it too
     torch.set_num_threads(n)
     try:
         torch.set_num_interop_threads(max(1, min(n, 2)))

@@ -150,7 +150,7 @@ def _clean_job_dir(settings: Settings, job_id: str) -> None:
     shutil.rmtree(artifacts_dir(settings, job_id), ignore_errors=True)
     if jdir.is_dir():
         for p in jdir.iterdir():
-            if p.name.startswith(".work-"):
+            if p.name.startswith((".work-", ".ribpull-")):  # ours, and the pipeline's own temp dirs
                 shutil.rmtree(p, ignore_errors=True)
 
 

@@ -118,7 +118,8 @@ class GridOccupancyField(nn.Module):
         b, n_lev = x.shape[0], self.n_levels
         u = (x.clamp(-self.domain, self.domain) + self.domain) / (2 * self.domain)  # (B, 3) in [0, 1]
         pos = u.unsqueeze(1) * self.resolutions.view(1, -1, 1).to(x.dtype)  # (B, L, 3)
-        base = pos.detach().floor()
+        # the last cell owns the upper face, so a point clamped onto the domain edge stays in range
+        base = torch.minimum(pos.detach().floor(), (self.resolutions - 1).view(1, -1, 1).to(x.dtype))
         frac = pos - base  # keeps the gradient w.r.t. x
         base = base.long()
         lo_hi = torch.stack([base, base + 1], dim=-1)  # (B, L, 3, 2)

@@ -32,7 +32,7 @@ def _encode_forward(x, table, res, sizes, offsets, dense, domain, out, idx_out, 
         for lev in range(n_levels):
             r = res[lev]
             px, py, pz = u[0] * r, u[1] * r, u[2] * r
-            ix, iy, iz = math.floor(px), math.floor(py), math.floor(pz)
+            ix, iy, iz = min(math.floor(px), r - 1), min(math.floor(py), r - 1), min(math.floor(pz), r - 1)
             fx, fy, fz = px - ix, py - iy, pz - iz
             ix, iy, iz = np.int64(ix), np.int64(iy), np.int64(iz)
             r1 = np.int64(r + 1)

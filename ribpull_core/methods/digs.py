@@ -156,7 +156,7 @@ class DiGS(Method):
             if it % 10 == 0:
                 check_cancel(should_cancel)
             w_div = divergence_weight(it, c.iterations, c.w_div, c.div_hold_until, c.div_zero_from)
-            on_idx = torch.from_numpy(rng.permutation(len(points))[:n_on]).to(device)
+            on_idx = torch.from_numpy(rng.choice(len(points), n_on, replace=False)).to(device)
             x_on = points_t[on_idx].requires_grad_(True)
             off = rng.uniform(-c.uniform_range, c.uniform_range, size=(int(c.n_uniform), 3)).astype(np.float32)
             x_off = torch.from_numpy(off).to(device).requires_grad_(True)

@@ -27,6 +27,7 @@ from scipy.spatial import cKDTree
 from ..fields import build_module
 from ..losses import (
     free_space_loss,
+    occupancy_label_loss,
     margin_uncertainty,
     minimax_entropy_loss,
     minimax_weight,
@@ -58,6 +59,9 @@ class SparseOccConfig:
     query_jitter: (start, end) std of Gaussian jitter added to queries each iteration, decaying
         linearly (RibPull's ribcage script: 0.05 -> 0.01); (0, 0) disables it.
     free_space_weight: weight of the free-space (outside) cross-entropy; 0 disables it.
+    near_surface_weight: weight of the near-surface inside/outside cross-entropy at input points
+        -/+ near_surface_offset (x flood-fill spacing) along flood-fill-oriented normals; 0 disables.
+    gradient "finite_difference" uses forward differences (3 extra evaluations per query).
     early_stop_window: iterations per window of the convergence test (0 disables); training stops
         when the mean loss of the last window improved by less than early_stop_rel_tol relative to the
         previous window, after at least early_stop_min_fraction of the schedule.
@@ -92,6 +96,9 @@ class SparseOccConfig:
     n_minimax: int = 1000
     free_space_weight: float = 0.0
     free_space_points: int = 5000
+    near_surface_weight: float = 0.0
+    near_surface_points: int = 2048
+    near_surface_offset: float = 0.5
     early_stop_window: int = 0
     early_stop_rel_tol: float = 0.01
     early_stop_min_fraction: float = 0.3
@@ -127,6 +134,8 @@ def default_config() -> SparseOccConfig:
         n_minimax=200,
         free_space_weight=1.0,
         free_space_points=2048,
+        near_surface_weight=1.0,
+        near_surface_points=4096,
         early_stop_window=100,
     )
 
@@ -154,21 +163,38 @@ def smoke_config() -> SparseOccConfig:
         n_minimax=50,
         free_space_weight=1.0,
         free_space_points=2048,
+        near_surface_weight=1.0,
+        near_surface_points=2048,
     )
 
 
 # --- free space ------------------------------------------------------------------------------
 
 
-def free_space_pool(points_unit: np.ndarray, rng: np.random.Generator, n_pool: int = 400_000,
-                    max_cells: int = 256) -> np.ndarray:
-    """Points that are certainly outside the shape, (M, 3) unit frame.
+@dataclass
+class SpaceLabels:
+    """Occupancy labels derived from the data (unit frame).
+
+    free: (M, 3) points certainly outside. near_in / near_out: (K, 3) points just inside / outside
+    the sampled surface (input point -/+ offset along its normal, oriented by the flood fill).
+    spacing: flood-fill voxel size; offset: the normal offset used.
+    """
+
+    free: np.ndarray
+    near_in: np.ndarray
+    near_out: np.ndarray
+    spacing: float
+    offset: float
+
+
+def outside_mask(points_unit: np.ndarray, max_cells: int = 256) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
+    """Flood-fill the empty space around the points; returns (outside (X,Y,Z) bool, occupied bool,
+    spacing, origin (3,)).
 
     Voxelise the input at a spacing derived from the data (1.5x the median distance to the 8th
-    neighbour, so the voxelised surface has no holes), dilate by one voxel, flood-fill the empty space
-    from the border of a padded box: every reached voxel is outside. Cavities (rib interiors, closed
-    shells) are never reached, so they are never labelled. Half the pool is drawn near the surface
-    (within 4 voxels of the dilated input), half anywhere outside.
+    neighbour, so the voxelised surface has no holes), dilate by one voxel, flood-fill from the border
+    of a padded box: every reached voxel is outside. Cavities (rib interiors, closed shells) are never
+    reached, so they are never labelled.
     """
     d8, _ = cKDTree(points_unit).query(points_unit, k=min(9, len(points_unit)))
     spacing = 1.5 * float(np.median(d8[:, -1]))
@@ -183,15 +209,42 @@ def free_space_pool(points_unit: np.ndarray, rng: np.random.Generator, n_pool: i
     labels, _ = ndimage.label(~occupied)
     border = np.unique(np.concatenate([labels[[0, -1]].ravel(), labels[:, [0, -1]].ravel(), labels[:, :, [0, -1]].ravel()]))
     outside = np.isin(labels, border[border > 0])
+    return outside, occupied, spacing, origin
+
+
+def oriented_normals(points_unit: np.ndarray, outside: np.ndarray, spacing: float, origin: np.ndarray, k: int = 16) -> np.ndarray:
+    """(N, 3) unit normals by PCA over k neighbours, flipped to point towards the flood-filled outside
+    (the gradient of a smoothed outside indicator). This orients the unoriented input from the data."""
+    _, nn = cKDTree(points_unit).query(points_unit, k=min(k, len(points_unit)))
+    nb = points_unit[nn] - points_unit[nn].mean(axis=1, keepdims=True)
+    _, _, vt = np.linalg.svd(nb, full_matrices=False)
+    normals = vt[:, -1, :]
+    smooth = ndimage.gaussian_filter(outside.astype(np.float32), 1.0)
+    coords = ((points_unit - origin) / spacing - 0.5).T
+    grad = np.stack([ndimage.map_coordinates(np.gradient(smooth, axis=a), coords, order=1) for a in range(3)], 1)
+    flip = np.einsum("ij,ij->i", normals, grad) < 0
+    normals[flip] *= -1
+    return normals
+
+
+def space_labels(points_unit: np.ndarray, rng: np.random.Generator, n_free: int = 400_000,
+                 offset_fraction: float = 0.5) -> SpaceLabels:
+    """Free-space points (half near the surface, within 4 voxels of the dilated input, half anywhere
+    outside) and near-surface inside/outside pairs at +-offset along the oriented normals, with
+    offset = offset_fraction x the flood-fill spacing (a length derived from the sampling density)."""
+    outside, occupied, spacing, origin = outside_mask(points_unit)
     near = outside & ndimage.binary_dilation(occupied, iterations=4)
     pools = []
-    for mask, n in ((near, n_pool // 2), (outside, n_pool - n_pool // 2)):
+    for mask, n in ((near, n_free // 2), (outside, n_free - n_free // 2)):
         cells = np.argwhere(mask)
-        if len(cells) == 0:
-            continue
-        pick = cells[rng.integers(0, len(cells), n)]
-        pools.append(origin + (pick + rng.random((n, 3))) * spacing)
-    return np.concatenate(pools).astype(np.float32) if pools else np.zeros((0, 3), np.float32)
+        if len(cells):
+            pick = cells[rng.integers(0, len(cells), n)]
+            pools.append(origin + (pick + rng.random((n, 3))) * spacing)
+    free = np.concatenate(pools).astype(np.float32) if pools else np.zeros((0, 3), np.float32)
+    normals = oriented_normals(points_unit, outside, spacing, origin)
+    offset = offset_fraction * spacing
+    return SpaceLabels(free, (points_unit - offset * normals).astype(np.float32),
+                       (points_unit + offset * normals).astype(np.float32), spacing, offset)
 
 
 # --- the method ------------------------------------------------------------------------------
@@ -226,11 +279,11 @@ def margin_and_gradient(module: torch.nn.Module, q: torch.Tensor, method: str, f
         (g,) = torch.autograd.grad(u.sum(), q, create_graph=True)
         return u, g
     eye = torch.eye(3, dtype=q.dtype, device=q.device) * fd_step
-    stacked = torch.cat([q, (q[:, None, :] + eye).reshape(-1, 3), (q[:, None, :] - eye).reshape(-1, 3)])
+    stacked = torch.cat([q, (q[:, None, :] + eye).reshape(-1, 3)])
     u_all = margin_uncertainty(module(stacked))
     b = q.shape[0]
     u = u_all[:b]
-    g = (u_all[b : 4 * b].view(b, 3) - u_all[4 * b :].view(b, 3)) / (2 * fd_step)
+    g = (u_all[b:].view(b, 3) - u[:, None]) / fd_step
     return u, g
 
 
@@ -254,7 +307,10 @@ class SparseOcc(Method):
         q_all = torch.from_numpy(queries).to(device)
         target_all = torch.from_numpy(pts.astype(np.float32)).to(device)[torch.from_numpy(nearest).to(device)]
         pts_t = torch.from_numpy(pts.astype(np.float32)).to(device)
-        free = torch.from_numpy(free_space_pool(pts, rng)).to(device) if cfg.free_space_weight > 0 else None
+        labels = space_labels(pts, rng, offset_fraction=cfg.near_surface_offset) if (cfg.free_space_weight > 0 or cfg.near_surface_weight > 0) else None
+        free = torch.from_numpy(labels.free).to(device) if labels is not None and cfg.free_space_weight > 0 else None
+        near = (torch.from_numpy(np.concatenate([labels.near_in, labels.near_out])).to(device)
+                if labels is not None and cfg.near_surface_weight > 0 else None)
         lo = torch.from_numpy(pts.min(0).astype(np.float32)).to(device) - 0.05
         hi = torch.from_numpy(pts.max(0).astype(np.float32)).to(device) + 0.05
 
@@ -295,6 +351,10 @@ class SparseOcc(Method):
             if free is not None and len(free):
                 fidx = torch.randint(0, len(free), (cfg.free_space_points,), device=device, generator=gen)
                 loss = loss + cfg.free_space_weight * free_space_loss(module(free[fidx]))
+            if near is not None:
+                nidx = torch.randint(0, len(near), (cfg.near_surface_points,), device=device, generator=gen)
+                inside = nidx < len(near) // 2  # first half are the inside points
+                loss = loss + cfg.near_surface_weight * occupancy_label_loss(module(near[nidx]), inside)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()

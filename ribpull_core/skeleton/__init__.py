@@ -16,6 +16,12 @@ from ribpull_core.skeleton.metrics import skeleton_metrics
 from ribpull_core.skeleton.model import RibCurve, Skeleton, SkeletonConfig
 
 __all__ = [
-    "SkeletonConfig", "RibCurve", "Skeleton", "laplacian_contraction", "skeletonize",
-    "skeleton_from_mesh", "export_skeleton", "skeleton_metrics",
+    "RibCurve",
+    "Skeleton",
+    "SkeletonConfig",
+    "export_skeleton",
+    "laplacian_contraction",
+    "skeleton_from_mesh",
+    "skeleton_metrics",
+    "skeletonize",
 ]

@@ -2,8 +2,8 @@
 
 A cluster's contracted points are reduced to ball samples (Cao et al.'s farthest-point ball
 sampling), linked when their members are neighbours on the original surface, collapsed to a tree
-(minimum spanning tree) and split into simple paths: the longest path first, then side branches
-longer than the pruning length. Each path becomes a polyline that is then refined on the ORIGINAL
+(minimum spanning tree) and split into simple paths: the longest path first, then only side
+branches that run far outside the tube around it (a rib is one path). Each path becomes a polyline that is then refined on the ORIGINAL
 surface points: recentred on the ellipse fitted to its cross-sections, smoothed, and extended along
 its end tangents to the cap centres, and resampled at ~1 mm.
 """
@@ -136,6 +136,8 @@ def contracted_paths(
     polylines, ids = [], []
     for comp in nx.connected_components(tree):
         for p in tree_paths(tree.subgraph(comp), node, prune_length_mm, clearance_mm):
+            if len(p) < 2:
+                continue
             polylines.append(node[p])
             ids.append(list(p))
     return polylines, assign, ids
@@ -227,7 +229,7 @@ def menger_curvature(poly_mm: np.ndarray, step_mm: float, baseline_mm: float = 5
     """(m,) curvature in 1/mm from the circle through nodes i-k, i, i+k (k x step ~ baseline_mm);
     0 where the triple does not fit."""
     m = len(poly_mm)
-    k = max(1, int(round(baseline_mm / step_mm)))
+    k = max(1, round(baseline_mm / step_mm))
     kap = np.zeros(m)
     if m < 2 * k + 1:
         return kap
@@ -243,52 +245,22 @@ def menger_curvature(poly_mm: np.ndarray, step_mm: float, baseline_mm: float = 5
 # refinement on the original surface points
 
 
-def fit_ellipse_center(uv: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, float, float] | None:
-    """Weighted algebraic conic fit of 2D points (n, 2); returns (centre (2,), semi-axis a, b) in the
-    points' units, or None when the fit is not a proper ellipse.
-
-    Minimises sum_i w_i (A u^2 + B uv + C v^2 + D u + E v + F)^2 with ||(A..F)|| = 1 (smallest right
-    singular vector), after centring/scaling the points for conditioning.
-    """
-    if len(uv) < 6:
-        return None
-    mu = (w[:, None] * uv).sum(0) / w.sum()
-    sc = np.sqrt((w * ((uv - mu) ** 2).sum(1)).sum() / w.sum())
-    if not np.isfinite(sc) or sc <= 0:
-        return None
-    x, y = ((uv - mu) / sc).T
-    design = np.stack([x * x, x * y, y * y, x, y, np.ones_like(x)], axis=1) * np.sqrt(w)[:, None]
-    try:
-        _, _, vt = np.linalg.svd(design, full_matrices=False)
-    except np.linalg.LinAlgError:
-        return None
-    A, B, C, D, E, F = vt[-1]
-    disc = B * B - 4 * A * C
-    if disc >= 0:
-        return None
-    M = np.array([[2 * A, B], [B, 2 * C]])
-    c = np.linalg.solve(M, [-D, -E])
-    # semi-axes: A' x^2 + ... = -F' at the centre
-    f0 = A * c[0] ** 2 + B * c[0] * c[1] + C * c[1] ** 2 + D * c[0] + E * c[1] + F
-    ev = np.linalg.eigvalsh(np.array([[A, B / 2], [B / 2, C]]))
-    if f0 == 0 or np.any(-f0 / ev <= 0):
-        return None
-    axes = np.sqrt(-f0 / ev) * sc
-    return c * sc + mu, float(axes.max()), float(axes.min())
-
-
 def conic_centres(scatter: np.ndarray, scale: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Batched algebraic conic fit from weighted scatter matrices.
 
     scatter: (m, 6, 6) sums of w d d^T with d = (x^2, xy, y^2, x, y, 1) of points (x, y) = uv / scale.
-    Returns (centres (m, 2), semi-axes (m, 2) major/minor, valid (m,) bool), in uv units; a fit is
-    valid when the conic is a real ellipse.
+    The conic A x^2 + B xy + C y^2 + D x + E y + F = 0 minimising sum w (d . coef)^2 with
+    ||coef|| = 1 is the eigenvector of the smallest eigenvalue. Returns (centres (m, 2), semi-axes
+    (m, 2) major/minor, valid (m,) bool, major-axis angle (m,) rad in the uv plane) in uv units;
+    a fit is valid when the conic is a real ellipse.
     """
     m = len(scatter)
+    if m == 0:
+        return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, dtype=bool), np.zeros(0)
     _, vec = np.linalg.eigh(scatter)
     A, B, C, D, E, F = np.moveaxis(vec[:, :, 0], 1, 0)
     det = 4 * A * C - B * B
-    ok = det > 1e-12 * np.maximum(1.0, (A * A + C * C))
+    ok = det > 1e-12 * np.maximum(1.0, A * A + C * C)
     safe = np.where(ok, det, 1.0)
     cx = (B * E - 2 * C * D) / safe
     cy = (B * D - 2 * A * E) / safe
@@ -299,11 +271,15 @@ def conic_centres(scatter: np.ndarray, scale: float) -> tuple[np.ndarray, np.nda
     with np.errstate(divide="ignore", invalid="ignore"):
         ax2 = -f0[:, None] / ev
     ok &= np.all(ax2 > 0, axis=1) & np.isfinite(ax2).all(axis=1)
-    axes = np.sqrt(np.where(ok[:, None], ax2, 0.0)) * scale
+    axes = np.sqrt(np.where(ok[:, None], ax2, 0.0)) * scale  # (along eigvec of ev[:, 0], ev[:, 1])
+    # major axis = eigenvector of the smaller eigenvalue of [[A, B/2], [B/2, C]] (x/y-ratio invariant
+    # to the common scale); angle in the uv plane
+    angle = np.where(ok, 0.5 * np.arctan2(B, A - C) + np.pi / 2, 0.0)
+    swap = axes[:, 0] < axes[:, 1]
     axes = np.sort(axes, axis=1)[:, ::-1]
     centres = np.stack([cx, cy], axis=1) * scale
     centres[~ok] = 0.0
-    return centres, axes, ok if m else np.zeros(0, bool)
+    return centres, axes, ok, np.where(swap, angle + np.pi / 2, angle)
 
 
 def fit_ellipse_center(uv: np.ndarray, w: np.ndarray | None = None) -> tuple[np.ndarray, float, float] | None:
@@ -317,22 +293,26 @@ def fit_ellipse_center(uv: np.ndarray, w: np.ndarray | None = None) -> tuple[np.
     sc = float(np.sqrt((w * ((uv - mu) ** 2).sum(1)).sum() / w.sum())) or 1.0
     x, y = ((uv - mu) / sc).T
     d = np.stack([x * x, x * y, y * y, x, y, np.ones_like(x)], axis=1)
-    c, ax, ok = conic_centres((d.T * w) @ d[None], sc)
+    c, ax, ok, _ = conic_centres((d.T * w) @ d[None], sc)
     return (c[0] + mu, float(ax[0, 0]), float(ax[0, 1])) if ok[0] else None
 
 
-def window_matrix(s_nodes: np.ndarray, s_points: np.ndarray, sigma_mm: float) -> sparse.csr_matrix:
-    """(m, n) sparse Gaussian weights exp(-(s_node - s_point)^2 / (2 sigma^2)), cut at 3 sigma (mm)."""
+def window_matrix(s_nodes: np.ndarray, s_points: np.ndarray, sigma_mm, half_mm=None) -> sparse.csr_matrix:
+    """(m, n) sparse Gaussian weights exp(-(s_node - s_point)^2 / (2 sigma^2)) for points within
+    half_mm of the node (default 3 sigma); sigma_mm and half_mm may be per node (m,) arrays (mm)."""
+    m = len(s_nodes)
+    sig = np.broadcast_to(np.asarray(sigma_mm, dtype=np.float64), (m,))
+    half = 3.0 * sig if half_mm is None else np.broadcast_to(np.asarray(half_mm, dtype=np.float64), (m,))
     order = np.argsort(s_points, kind="stable")
     ss = s_points[order]
-    lo = np.searchsorted(ss, s_nodes - 3 * sigma_mm, side="left")
-    hi = np.searchsorted(ss, s_nodes + 3 * sigma_mm, side="right")
-    cnt = hi - lo
-    rows = np.repeat(np.arange(len(s_nodes)), cnt)
+    lo = np.searchsorted(ss, s_nodes - half, side="left")
+    hi = np.searchsorted(ss, s_nodes + half, side="right")
+    cnt = np.maximum(hi - lo, 0)
+    rows = np.repeat(np.arange(m), cnt)
     pos = np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt) + np.repeat(lo, cnt)
     cols = order[pos]
-    vals = np.exp(-0.5 * ((s_nodes[rows] - s_points[cols]) / sigma_mm) ** 2)
-    return sparse.csr_matrix((vals, (rows, cols)), shape=(len(s_nodes), len(s_points)))
+    vals = np.exp(-0.5 * ((s_nodes[rows] - s_points[cols]) / sig[rows]) ** 2)
+    return sparse.csr_matrix((vals, (rows, cols)), shape=(m, len(s_points)))
 
 
 def recentre_polyline(
@@ -342,8 +322,9 @@ def recentre_polyline(
     sigma_mm: float,
     weights: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Move each node to the centre of its tube cross-section; returns (polyline (m, 3), minor
-    semi-axis per node (m,) mm, NaN where no ellipse was fitted).
+    """Move each node to the centre of its tube cross-section; returns (polyline (m, 3), minor and
+    major semi-axis per node (m,) mm (NaN where no ellipse was fitted), major-axis unit vectors
+    (m, 3)).
 
     Surface points are projected onto the curve; their offsets, expressed in rotation-minimizing
     frames, are pooled over a Gaussian window (sigma_mm, cut at 3 sigma) of arc length around each
@@ -355,7 +336,7 @@ def recentre_polyline(
     contraction's bias toward the thick side of the tube.
     """
     m = len(poly_mm)
-    s_p, j, _, fine, s_f = project_to_polyline(points_mm, poly_mm)
+    s_p, j, _, fine, _ = project_to_polyline(points_mm, poly_mm)
     interior = (j > 0) & (j < len(fine) - 1)
     pts, s_p, j = points_mm[interior], s_p[interior], j[interior]
     t_fine = tangents(fine)
@@ -373,47 +354,60 @@ def recentre_polyline(
     x, y = (uv / scale).T
     d = np.stack([x * x, x * y, y * y, x, y, np.ones_like(x)], axis=1)
     scatter = (W @ (d[:, :, None] * d[:, None, :]).reshape(len(d), 36)).reshape(m, 6, 6)
-    centres, axes, ok = conic_centres(scatter, scale)
+    centres, axes, ok, angle = conic_centres(scatter, scale)
     ok &= (count >= 8) & (np.linalg.norm(centres, axis=1) < 0.6 * spread) & (axes[:, 0] < 2.0 * spread)
     ww = W if weights is None else W @ sparse.diags(weights[interior])
     centroid = (ww @ uv) / np.maximum(np.asarray(ww.sum(1)).ravel(), 1e-12)[:, None]
     c = np.where(ok[:, None], centres, centroid)
     c[count < 3] = 0.0
     out = poly_mm + c[:, :1] * Nn + c[:, 1:] * Bn
-    minor = np.where(ok, axes[:, 1], np.nan)
-    return out, minor
+    axes = np.where(ok[:, None], axes, np.nan)
+    major_dir = np.cos(angle)[:, None] * Nn + np.sin(angle)[:, None] * Bn
+    return out, axes[:, 1], axes[:, 0], major_dir
 
 
 def end_cap_offset(
-    end_mm: np.ndarray, tangent: np.ndarray, points_mm: np.ndarray, radius_mm: float
+    end_mm: np.ndarray, tangent: np.ndarray, points_mm: np.ndarray, minor_mm: float,
+    major_mm: float | None = None, major_dir: np.ndarray | None = None,
 ) -> float | None:
     """Signed distance (mm) along the outward end tangent from `end_mm` to the cap centre.
 
-    Casts a ray from the end along `tangent`; the surface points near the ray (perpendicular
-    distance rho < 0.9 x radius, in front of the end) are taken as the cap. Each gives a centre
-    estimate z - sqrt(r^2 - rho^2) (z: its height along the ray), i.e. where the centre of a
-    spherical cap of the local radius r would be; the apex of the cap minus the local radius for a
-    capsule-like end. Returns the median of the estimates from the outermost points (within r/2 of
-    the farthest one), or None when the ray meets no surface point.
+    Casts a ray from the end along `tangent` and models the end as a half-ellipsoid around it with
+    the local cross-section (semi-axes major_mm along major_dir and minor_mm; a circle of radius
+    minor_mm when no section is known) and length minor_mm along the ray, i.e. the apex of the cap
+    minus the local radius (a capsule-like end). Every surface point inside the section outline
+    (normalised section radius q < 0.9) in front of the end gives a centre estimate
+    z - minor sqrt(1 - q^2) (z: its height along the ray). Returns the median of the estimates
+    within minor/2 of the largest one (the cap, not tube wall points behind it), or None when the
+    ray meets no surface point.
     """
     rel = points_mm - end_mm
     z = rel @ tangent
-    rho = np.linalg.norm(rel - z[:, None] * tangent, axis=1)
-    cand = (rho < 0.9 * radius_mm) & (z > -2.0 * radius_mm)
+    lat = rel - z[:, None] * tangent
+    if major_mm is not None and major_dir is not None and np.isfinite(major_mm) and major_mm > 0:
+        d = major_dir - (major_dir @ tangent) * tangent
+        d /= max(np.linalg.norm(d), 1e-12)
+        q2 = (lat @ d / major_mm) ** 2 + (lat @ np.cross(tangent, d) / minor_mm) ** 2
+    else:
+        q2 = (np.linalg.norm(lat, axis=1) / minor_mm) ** 2
+    cand = (q2 < 0.81) & (z > -2.0 * minor_mm)
     if not cand.any():
         return None
-    est = z[cand] - np.sqrt(np.maximum(radius_mm ** 2 - rho[cand] ** 2, 0.0))
-    top = est >= est.max() - 0.5 * radius_mm
+    est = z[cand] - minor_mm * np.sqrt(1.0 - q2[cand])
+    top = est >= est.max() - 0.5 * minor_mm
     return float(np.median(est[top]))
 
 
 def adjust_ends(
     poly_mm: np.ndarray, points_mm: np.ndarray, radius_head_mm: float, radius_tip_mm: float,
     step_mm: float, tangent_mm: float = 6.0, extend: tuple[bool, bool] = (True, True),
+    sections: tuple | None = None,
 ) -> np.ndarray:
     """Extend (or trim) both ends of a polyline along their tangents to the cap centres.
 
     The end tangent is taken over the last `tangent_mm` of the curve; see `end_cap_offset`.
+    radius_*_mm: local radius (minor semi-axis) at each end; sections: optional
+    ((major_head, dir_head (3,)), (major_tip, dir_tip)) cross-section ellipses at the ends.
     extend: (head, tip) which ends to adjust. Returns the new polyline resampled at `step_mm`.
     """
     poly = resample_polyline(poly_mm, step_mm)
@@ -431,7 +425,8 @@ def adjust_ends(
         t = poly[0] - poly[k]
         t /= np.linalg.norm(t)
         r = radius_head_mm if end == 0 else radius_tip_mm
-        off = end_cap_offset(poly[0], t, points_mm, r)
+        sec = sections[end] if sections is not None else (None, None)
+        off = end_cap_offset(poly[0], t, points_mm, r, sec[0], sec[1])
         if off is not None:
             if off > 0:
                 n_new = int(np.ceil(off / step_mm))

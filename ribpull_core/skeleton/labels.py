@@ -1,7 +1,8 @@
 """Rib names for skeleton curves: from input labels when there are any, else from geometry.
 
-Frame assumption for geometric naming: +x = patient's left, +y = anterior, +z = superior (the
-project's "RAS-like" mm frame). Names are "L1".."L12" / "R1".."R12".
+Frame assumption for geometric naming: NIfTI/nibabel RAS+ mm by default (+x = patient's right,
++y = anterior, +z = superior), as real label maps read through their affine and the phantom;
+`left_is_positive_x=True` flips the side rule. Names are "L1".."L12" / "R1".."R12".
 """
 
 from __future__ import annotations
@@ -70,48 +71,58 @@ def orient_head_first(poly_mm: np.ndarray, mid_x_mm: float) -> bool:
     return head_end_score(poly_mm[-1], mid_x_mm) < head_end_score(poly_mm[0], mid_x_mm)
 
 
-def number_by_height(head_z_mm: np.ndarray, spacing_mm: float) -> np.ndarray:
+def number_by_height(head_z_mm: np.ndarray, spacing_mm: float, max_skip: int = 2) -> np.ndarray:
     """(n,) rib numbers for one side's heads z (any order): 1 for the highest head; a gap between
-    consecutive heads of about k x spacing_mm skips k - 1 numbers (a missing rib in between)."""
+    consecutive heads of about k x spacing_mm skips k - 1 numbers (a missing rib in between), at
+    most `max_skip` numbers per gap."""
     z = np.asarray(head_z_mm, dtype=np.float64)
     order = np.argsort(-z)
     nums = np.empty(len(z), dtype=np.int64)
     if len(z) == 0:
         return nums
     gaps = -np.diff(z[order])
-    steps = np.maximum(1, np.rint(gaps / max(spacing_mm, 1e-6)).astype(np.int64))
+    steps = np.clip(np.rint(gaps / max(spacing_mm, 1e-6)).astype(np.int64), 1, 1 + max_skip)
     nums[order] = 1 + np.concatenate([[0], np.cumsum(steps)])
     return nums
 
 
-def geometric_labels(polys_mm: list[np.ndarray], mid_x_mm: float) -> list[str]:
+def geometric_labels(
+    polys_mm: list[np.ndarray], mid_x_mm: float, left_is_positive_x: bool = False,
+    min_spacing_mm: float = 12.0,
+) -> list[str]:
     """Names for head-first curves from geometry alone.
 
-    Side: mean x of the curve vs the mid-sagittal x (+x = left). Number: rank of the head height
-    per side, top = 1, where a head gap of about two typical spacings skips a number, and a side
-    whose top head sits about k spacings below the other side's top head starts at k + 1.
-    The typical spacing is the median gap between consecutive heads on both sides.
+    Side: mean x of the curve vs the mid-sagittal x; the patient's left is at -x (NIfTI RAS+, the
+    default) or at +x when left_is_positive_x.
+    Number: rank of the head (first node) height per side, top = 1, where a head gap of about k
+    typical spacings skips k - 1 numbers (a missing rib), and a side whose top head sits about k
+    spacings below the other side's top head starts at k + 1 (a missing first rib on one side).
+    The typical spacing is the median gap between consecutive heads of a side (at least
+    min_spacing_mm). If that would number past 12, plain ranks are used.
 
-    Limitations: a missing FIRST rib on both sides, or several ribs missing in a row next to
-    irregular spacing, shift the numbers; the frame must have +x left and +z up.
+    Limitations: ribs missing at the top of BOTH sides (or a crop that starts below rib 1) shift
+    every number; several ribs missing in a row next to irregular spacing can be miscounted;
+    curves whose head is cut off (crops) rank by their highest remaining end. Use labels then.
     """
     if not polys_mm:
         return []
-    side = np.array(["L" if p[:, 0].mean() > mid_x_mm else "R" for p in polys_mm])
+    left = np.array([(p[:, 0].mean() > mid_x_mm) == left_is_positive_x for p in polys_mm])
+    side = np.where(left, "L", "R")
     head_z = np.array([p[0, 2] for p in polys_mm])
     gaps = []
     for sd in ("L", "R"):
         z = np.sort(head_z[side == sd])[::-1]
         gaps.extend((-np.diff(z)).tolist())
     gaps = np.asarray(gaps)
-    gaps = gaps[gaps > 1e-3]
-    spacing = float(np.median(gaps)) if len(gaps) else 20.0
+    spacing = max(float(np.median(gaps)) if len(gaps) else 20.0, min_spacing_mm)
     numbers = np.zeros(len(polys_mm), dtype=np.int64)
+    ranks = np.zeros(len(polys_mm), dtype=np.int64)
     tops = {}
     for sd in ("L", "R"):
         idx = np.flatnonzero(side == sd)
         if len(idx):
             numbers[idx] = number_by_height(head_z[idx], spacing)
+            ranks[idx] = number_by_height(head_z[idx], np.inf)
             tops[sd] = head_z[idx].max()
     if len(tops) == 2:
         top = max(tops.values())
@@ -119,4 +130,6 @@ def geometric_labels(polys_mm: list[np.ndarray], mid_x_mm: float) -> list[str]:
             k = int(np.rint((top - zt) / spacing))
             if k > 0:
                 numbers[side == sd] += k
+    if numbers.max() > 12:
+        numbers = ranks
     return [f"{s}{int(n)}" for s, n in zip(side, numbers)]

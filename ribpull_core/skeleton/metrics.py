@@ -80,8 +80,8 @@ def skeleton_metrics(skel: Skeleton, true_centerlines, coverage_tol_mm: float = 
     points within coverage_tol_mm of the (resampled) skeleton. n_paths: branch-free paths of the
     graph; n_branch_nodes: nodes of degree >= 3; n_cycles: networkx cycle_basis size;
     n_components: connected parts. label_accuracy (named truth only, else None): fraction of
-    curves whose label equals the name of the true rib nearest to them (mean distance);
-    n_curves and, per true rib, its matched curve label and mean distance.
+    curves whose label equals the name of the true rib nearest to them (the rib nearest to most of
+    the curve's nodes); label_matches: true rib name -> labels of the curves matched to it.
     """
     truth, named = truth_dict(true_centerlines)
     true_pts = np.vstack(list(truth.values()))
@@ -92,7 +92,7 @@ def skeleton_metrics(skel: Skeleton, true_centerlines, coverage_tol_mm: float = 
     names = list(truth.keys())
     g = graph_of(skel)
     sk_dense = densify_edges(skel.nodes_mm, skel.edges, 0.1)
-    out: dict = {"n_nodes": int(len(skel.nodes_mm)), "n_curves": len(skel.curves)}
+    out: dict = {"n_nodes": len(skel.nodes_mm), "n_curves": len(skel.curves)}
     if len(sk_dense) == 0:
         out.update(mean_dist_mm=float("inf"), p95_dist_mm=float("inf"), max_dist_mm=float("inf"), coverage=0.0)
     else:

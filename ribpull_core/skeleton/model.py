@@ -34,7 +34,8 @@ class SkeletonConfig:
       max_iterations: at most this many solves (Cao: 20). stop_shrink: stop when the mean ring size
         shrinks by less than this fraction in one iteration (Cao: 1 %).
       recompute_laplacian: rebuild the robust Laplacian on the contracted points every iteration
-        (pc-skeletor) instead of keeping the first one.
+        (pc-skeletor). With the first Laplacian kept fixed, a tube keeps shrinking along its length
+        towards a point, so leave this on.
     Curve extraction (mm):
       sample_radius_mm: farthest-point ball sampling radius on the contracted points.
       prune_length_mm / branch_clearance_mm: a side branch of a cluster's tree becomes an extra
@@ -52,14 +53,21 @@ class SkeletonConfig:
       recentre_sigma_mm / recentre_iterations: each node moves to the centre of an ellipse fitted to the
         surface points in its cross-section (Gaussian window of this sigma along the curve); removes the
         contraction's bias toward the thick side of the tube.
-      extend_ends: extend each end along its tangent to the cap of the tube, then back off by the local
-        radius (lands on the cap centre of a capsule-like end).
+      extend_ends: extend (or trim) each end along its tangent to the cap of the tube, then back off
+        by the local radius, the fitted section's minor semi-axis (lands on the cap centre of a
+        capsule-like or half-ellipsoid end; see curves.end_cap_offset).
+    Deterministic: the same input and config give the same skeleton.
     Radius:
-      radius_k: with no distance function, the radius is the smallest point-to-plane distance to the
-        `radius_k` nearest surface points when normals are given, else the nearest-point distance.
+      radius_k: with no distance function, the radius is the mean of the 3 smallest distances to the
+        tangent planes of the `radius_k` nearest surface points (normals given, else PCA-estimated),
+        capped by the nearest-point distance (extract.surface_distance_fn).
+    Names (only used without point labels):
+      left_is_positive_x: False (default) = NIfTI/nibabel RAS+ world mm, the patient's left at -x
+        (real label maps read through their affine, and ribpull_core.phantom). True for LPS-style
+        or "+x = left" frames. +y must be anterior and +z superior either way.
     Runtime:
-      n_jobs: worker threads for the per-component contraction (None = all cores).
-      seed: farthest-point sampling start (results are deterministic for a given seed).
+      n_jobs: worker threads for the per-cluster contraction (None = all cores). Default 1:
+        robust-laplacian holds the GIL, so threads gave no speed-up on the 2-core test machine.
     """
 
     link_mm: float | None = None
@@ -92,8 +100,8 @@ class SkeletonConfig:
     recentre_iterations: int = 3
     extend_ends: bool = True
     radius_k: int = 8
-    n_jobs: int | None = None
-    seed: int = 0
+    left_is_positive_x: bool = False
+    n_jobs: int | None = 1
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -160,8 +168,8 @@ class Skeleton:
         """JSON-ready dict: units, nodes, edges, radius, components (one per curve), counts, info."""
         return {
             "units": "mm",
-            "n_nodes": int(len(self.nodes_mm)),
-            "n_edges": int(len(self.edges)),
+            "n_nodes": len(self.nodes_mm),
+            "n_edges": len(self.edges),
             "nodes": np.round(self.nodes_mm, 4).tolist(),
             "edges": self.edges.astype(int).tolist(),
             "radius": np.round(self.radius_mm, 4).tolist(),

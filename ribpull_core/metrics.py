@@ -1,0 +1,166 @@
+"""Surface and compression metrics, ConvONet-style (the evaluator SparseOcc and RibPull report).
+
+All distances are millimetres in the input's frame; the paper's Table 1 units are obtained with
+`paper_units_per_mm` (= UnitFrame.paper_units_per_mm): CD-L1 and HD ×100, CD-L2 ×1e4 in the [-1, 1]
+frame.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+import trimesh
+from scipy.spatial import cKDTree
+
+from .errors import RibPullInputError
+from .mesh import count_components
+from .pointcloud import PointCloud
+
+
+def _spread_bits(x: np.ndarray) -> np.ndarray:
+    x = x & 0x3FF
+    x = (x | (x << 16)) & 0x30000FF
+    x = (x | (x << 8)) & 0x300F00F
+    x = (x | (x << 4)) & 0x30C30C3
+    return (x | (x << 2)) & 0x9249249
+
+
+def morton_order(points: np.ndarray) -> np.ndarray:
+    """(N, 3) -> (N,) permutation sorting points along a Z-order curve (1024 cells per axis).
+
+    Kd-tree builds and queries on spatially sorted points are several times faster (cache locality:
+    0.8 s instead of 5.2 s for 1M x 1M surface samples here)."""
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if len(p) == 0:
+        return np.zeros(0, dtype=np.int64)
+    ext = max(float(np.ptp(p, axis=0).max()), 1e-300)
+    c = np.clip(((p - p.min(axis=0)) / ext * 1023.999).astype(np.int64), 0, 1023)
+    return np.argsort(_spread_bits(c[:, 0]) | (_spread_bits(c[:, 1]) << 1) | (_spread_bits(c[:, 2]) << 2), kind="stable")
+
+
+def sample_mesh(mesh: trimesh.Trimesh, n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """n area-uniform points on a mesh with their face normals: ((n, 3), (n, 3)), units of the mesh.
+    Returned in Z-order (see `morton_order`)."""
+    if len(mesh.faces) == 0 or not mesh.area > 0:
+        raise RibPullInputError("degenerate", "cannot sample an empty mesh (no faces or zero area)")
+    pts, fidx = trimesh.sample.sample_surface(mesh, int(n), seed=seed)
+    o = morton_order(pts)
+    return np.asarray(pts, dtype=np.float64)[o], np.asarray(mesh.face_normals[fidx[o]], dtype=np.float64)
+
+
+def estimate_normals(points: np.ndarray, k: int = 16) -> np.ndarray:
+    """(N, 3) -> (N, 3) unoriented unit normals: smallest principal axis of each point's k neighbours."""
+    points = np.asarray(points, dtype=np.float64)
+    k = int(min(k, len(points)))
+    if k < 3:
+        raise RibPullInputError("too_few_points", "need at least 3 points to estimate normals")
+    _, nn = cKDTree(points).query(points, k=k, workers=-1)
+    out = np.empty_like(points)
+    step = 262_144
+    for s in range(0, len(points), step):
+        nb = points[nn[s : s + step]]  # (b, k, 3)
+        nb = nb - nb.mean(axis=1, keepdims=True)
+        cov = np.einsum("bki,bkj->bij", nb, nb)
+        _, vecs = np.linalg.eigh(cov)
+        out[s : s + step] = vecs[:, :, 0]
+    return out
+
+
+def _as_reference(reference, n_samples: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Reference points (M, 3) and unit normals (M, 3) from a mesh, a PointCloud or an array."""
+    if isinstance(reference, trimesh.Trimesh):
+        return sample_mesh(reference, n_samples, seed=seed + 1)
+    if isinstance(reference, PointCloud):
+        pts, nrm = reference.points, reference.normals
+    else:
+        pts, nrm = np.asarray(reference, dtype=np.float64).reshape(-1, 3), None
+    if len(pts) == 0:
+        raise RibPullInputError("too_few_points", "the reference has no points")
+    o = morton_order(pts)
+    pts = pts[o]
+    nrm = estimate_normals(pts) if nrm is None else nrm[o]
+    nrm = nrm / np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
+    return pts, nrm
+
+
+def surface_metrics(
+    pred_mesh: trimesh.Trimesh,
+    reference,
+    *,
+    n_samples: int = 100_000,
+    tau_mm: float = 1.0,
+    paper_units_per_mm: float | None = None,
+    seed: int = 0,
+) -> dict:
+    """Chamfer, Hausdorff, normal consistency and F-score of a predicted mesh against a reference.
+
+    pred_mesh: mesh in mm; n_samples area-uniform points with face normals are drawn on it.
+    reference: a mesh in mm (n_samples points drawn on it too) or (M, 3) points / a PointCloud in mm,
+    used as is (its normals if present, else PCA normals over 16 neighbours).
+    acc = NN distance pred -> ref, comp = ref -> pred. Returns (mm unless named):
+    cd_l1_mm = ½(mean acc + mean comp), cd_l2_mm2 = ½(mean acc² + mean comp²),
+    hausdorff_mm = max(max acc, max comp), normal_consistency = ½(mean |n_p·n_r| both ways),
+    precision = frac(acc <= tau), recall = frac(comp <= tau), fscore = 2PR/(P+R), tau_mm,
+    n_samples, n_reference; with paper_units_per_mm k also cd_l1_paper = cd_l1_mm·k·100,
+    cd_l2_paper = cd_l2_mm2·k²·1e4, hausdorff_paper = hausdorff_mm·k·100.
+    With 100k samples the sampling alone puts a floor under CD-L1 of about half the sample spacing.
+    """
+    pp, pn = sample_mesh(pred_mesh, n_samples, seed=seed)
+    rp, rn = _as_reference(reference, n_samples, seed)
+    acc, ia = cKDTree(rp).query(pp, k=1, workers=-1)
+    comp, ic = cKDTree(pp).query(rp, k=1, workers=-1)
+    nc_acc = np.abs(np.einsum("ij,ij->i", pn, rn[ia])).mean()
+    nc_comp = np.abs(np.einsum("ij,ij->i", rn, pn[ic])).mean()
+    precision = float((acc <= tau_mm).mean())
+    recall = float((comp <= tau_mm).mean())
+    out = {
+        "cd_l1_mm": float(0.5 * (acc.mean() + comp.mean())),
+        "cd_l2_mm2": float(0.5 * ((acc**2).mean() + (comp**2).mean())),
+        "hausdorff_mm": float(max(acc.max(), comp.max())),
+        "normal_consistency": float(0.5 * (nc_acc + nc_comp)),
+        "fscore": float(2 * precision * recall / (precision + recall)) if precision + recall > 0 else 0.0,
+        "precision": precision,
+        "recall": recall,
+        "tau_mm": float(tau_mm),
+        "n_samples": int(len(pp)),
+        "n_reference": int(len(rp)),
+    }
+    if paper_units_per_mm is not None:
+        k = float(paper_units_per_mm)
+        out["paper_units_per_mm"] = k
+        out["cd_l1_paper"] = out["cd_l1_mm"] * k * 100.0
+        out["cd_l2_paper"] = out["cd_l2_mm2"] * k * k * 1e4
+        out["hausdorff_paper"] = out["hausdorff_mm"] * k * 100.0
+    return out
+
+
+def compression_metrics(input_bytes: int, module: torch.nn.Module) -> dict:
+    """Size of the network's weights vs the input file (ratio < 1: the weights are smaller).
+
+    n_parameters counts every stored tensor of the state dict (weight-norm g and v included);
+    weights_bytes_* = n_parameters × 4 or 2; ratio_* = weights / input (None when input_bytes is 0).
+    """
+    n = int(sum(t.numel() for t in module.state_dict().values() if torch.is_tensor(t) and t.is_floating_point()))
+    fp32, fp16 = 4 * n, 2 * n
+    ib = int(input_bytes)
+    return {
+        "n_parameters": n,
+        "weights_bytes_fp32": fp32,
+        "weights_bytes_fp16": fp16,
+        "input_bytes": ib,
+        "ratio_fp32": fp32 / ib if ib > 0 else None,
+        "ratio_fp16": fp16 / ib if ib > 0 else None,
+    }
+
+
+def mesh_summary(mesh: trimesh.Trimesh) -> dict:
+    """n_vertices, n_faces, components, watertight, area_mm2, volume_mm3 (None unless watertight)."""
+    watertight = bool(mesh.is_watertight) if len(mesh.faces) else False
+    return {
+        "n_vertices": int(len(mesh.vertices)),
+        "n_faces": int(len(mesh.faces)),
+        "components": count_components(mesh),
+        "watertight": watertight,
+        "area_mm2": float(mesh.area),
+        "volume_mm3": float(mesh.volume) if watertight else None,
+    }

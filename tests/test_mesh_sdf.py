@@ -1,0 +1,200 @@
+"""Meshing, SDF volume, point queries and preview on analytic fields with known surfaces (mm)."""
+
+from __future__ import annotations
+
+import nibabel as nib
+import numpy as np
+import pytest
+import torch
+import trimesh
+from scipy.spatial import cKDTree
+from torch import nn
+
+from ribpull_core.config import MeshConfig, SdfConfig
+from ribpull_core.errors import JobCanceled, RibPullInputError
+from ribpull_core.frame import UnitFrame
+from ribpull_core.mesh import count_components, export_mesh, extract_mesh, split_components
+from ribpull_core.methods.base import FittedField
+from ribpull_core.pointcloud import PointCloud
+from ribpull_core.render import render_preview
+from ribpull_core.sdf import query_field, sdf_grid_for, signed_distance_volume, voxel_centers_mm, write_nifti
+
+FRAME = UnitFrame((100.0, -50.0, 20.0), 150.0)  # 1 unit = 150 mm
+BOX = (np.full(3, -0.8), np.full(3, 0.8))
+
+
+class Spheres(nn.Module):
+    """Two logits [out, in] with logit_in = k * max_i (r_i - |x - c_i|): a union of balls (unit frame)."""
+
+    def __init__(self, centres, radii, k: float = 20.0):
+        super().__init__()
+        self.c = nn.Parameter(torch.tensor(centres, dtype=torch.float32).reshape(-1, 3))
+        self.r = torch.tensor(radii, dtype=torch.float32).reshape(-1)
+        self.k = k
+
+    def forward(self, x):
+        d = self.r[None, :] - torch.cdist(x, self.c)
+        li = self.k * d.max(dim=1).values
+        return torch.stack([-li, li], -1)
+
+
+class Torus(nn.Module):
+    """Torus around z, major radius R, minor radius r (unit frame)."""
+
+    def __init__(self, R: float = 0.45, r: float = 0.15, k: float = 20.0):
+        super().__init__()
+        self.R = nn.Parameter(torch.tensor(R))
+        self.r, self.k = r, k
+
+    def forward(self, x):
+        q = torch.sqrt((torch.linalg.norm(x[:, :2], dim=1) - self.R) ** 2 + x[:, 2] ** 2)
+        li = self.k * (self.r - q)
+        return torch.stack([-li, li], -1)
+
+
+def sphere_field(centre=(0.1, -0.2, 0.05), radius=0.5) -> FittedField:
+    return FittedField(Spheres([centre], [radius]), kind="occupancy", level=0.0)
+
+
+@pytest.fixture(scope="module")
+def sphere_mesh() -> trimesh.Trimesh:
+    return extract_mesh(sphere_field(), FRAME, BOX, MeshConfig(resolution=96, coarse_resolution=24))
+
+
+def test_sphere_mesh_is_watertight_outward_and_on_the_surface(sphere_mesh):
+    m = sphere_mesh
+    c_mm = FRAME.to_mm(np.array([0.1, -0.2, 0.05]))
+    r_mm = 0.5 * 150.0
+    err = np.abs(np.linalg.norm(m.vertices - c_mm, axis=1) - r_mm)
+    voxel = m.metadata["voxel_mm"]
+    assert voxel == pytest.approx(1.7 * 150 / 96)  # box ±0.8 plus padding 0.05
+    assert m.is_watertight
+    assert err.max() < 0.02 * voxel  # vertices in mm, in the input's frame
+    assert m.volume == pytest.approx(4 / 3 * np.pi * r_mm**3, rel=0.01)  # positive: outward faces
+    outward = np.einsum("ij,ij->i", m.face_normals, m.triangles_center - c_mm)
+    assert (outward > 0).all()
+    assert count_components(m) == 1
+    assert m.metadata["field_queries"] < m.metadata["dense_queries"]
+
+
+def test_coarse_to_fine_equals_dense_with_far_fewer_queries():
+    field = FittedField(Torus(), kind="occupancy", level=0.0)
+    fine = extract_mesh(field, FRAME, BOX, MeshConfig(resolution=96, coarse_resolution=12))
+    dense = extract_mesh(field, FRAME, BOX, MeshConfig(resolution=96, coarse_resolution=96))
+    assert fine.metadata["levels"] == 3 and dense.metadata["levels"] == 0
+    assert dense.metadata["field_queries"] == dense.metadata["dense_queries"] == 97**3
+    assert fine.metadata["field_queries"] < 0.2 * dense.metadata["dense_queries"]
+    assert fine.vertices.shape == dense.vertices.shape and fine.faces.shape == dense.faces.shape
+    gap = cKDTree(dense.vertices).query(fine.vertices)[0]  # same vertices up to float32 rounding
+    assert gap.max() < 1e-3
+    assert fine.is_watertight and count_components(fine) == 1
+    assert fine.euler_number == 0  # genus one
+
+
+def test_two_separate_spheres_give_two_components():
+    field = FittedField(Spheres([(-0.4, 0, 0), (0.4, 0.1, 0)], [0.25, 0.2]), kind="occupancy")
+    m = extract_mesh(field, FRAME, BOX, MeshConfig(resolution=64, coarse_resolution=16))
+    parts = split_components(m)
+    assert count_components(m) == 2 and len(parts) == 2
+    assert all(p.is_watertight for p in parts)
+    assert len(parts[0].faces) >= len(parts[1].faces)  # largest first
+    radii = sorted(np.cbrt(p.volume * 3 / (4 * np.pi)) for p in parts)
+    np.testing.assert_allclose(radii, [0.2 * 150, 0.25 * 150], rtol=0.01)
+
+
+def test_empty_level_set_is_a_degenerate_input_error():
+    field = sphere_field(radius=0.01)  # far smaller than a coarse cell: all outside on the grid
+    field.level = 0.5
+    with pytest.raises(RibPullInputError) as err:
+        extract_mesh(field, FRAME, BOX, MeshConfig(resolution=32, coarse_resolution=16))
+    assert err.value.code == "degenerate" and "outside everywhere" in err.value.message
+    inside = FittedField(Spheres([(0, 0, 0)], [5.0]), kind="occupancy")
+    with pytest.raises(RibPullInputError, match="inside everywhere"):
+        extract_mesh(inside, FRAME, BOX, MeshConfig(resolution=32, coarse_resolution=16))
+
+
+def test_cancel_and_progress():
+    calls = []
+    m = extract_mesh(sphere_field(), FRAME, BOX, MeshConfig(resolution=32, coarse_resolution=8), progress=calls.append)
+    assert len(m.faces) and calls[-1] == 1.0 and calls == sorted(calls)
+    with pytest.raises(JobCanceled):
+        extract_mesh(sphere_field(), FRAME, BOX, MeshConfig(resolution=32, coarse_resolution=8), should_cancel=lambda: True)
+
+
+def test_export_formats_roundtrip(tmp_path, sphere_mesh):
+    paths = export_mesh(sphere_mesh, tmp_path)
+    assert set(paths) == {"ply", "stl", "obj", "glb"}
+    for fmt, p in paths.items():
+        assert p.name == f"mesh.{fmt}" and p.stat().st_size > 0
+        back = trimesh.load(p, force="mesh")
+        np.testing.assert_allclose(back.bounds, sphere_mesh.bounds, atol=1e-3)  # still mm
+
+
+def test_sdf_volume_matches_analytic_sphere(sphere_mesh):
+    c_mm = FRAME.to_mm(np.array([0.1, -0.2, 0.05]))
+    cloud = PointCloud(points=sphere_mesh.vertices)
+    shape, affine = sdf_grid_for(cloud, FRAME, SdfConfig(voxel_mm=4.0, padding_mm=10.0))
+    np.testing.assert_allclose(np.diag(affine)[:3], 4.0)
+    np.testing.assert_allclose(affine[:3, 3], cloud.bbox_mm[0] - 10.0)
+    vol = signed_distance_volume(sphere_mesh, sphere_field(), FRAME, shape, affine, n_samples=200_000)
+    assert vol.shape == shape and vol.dtype == np.float32
+    true = np.linalg.norm(voxel_centers_mm(shape, affine) - c_mm, axis=1) - 75.0
+    err = np.abs(vol.ravel() - true)
+    assert err.mean() < 0.03 * 4.0 and err.max() < 0.25 * 4.0  # mm, voxel 4 mm
+    clear = np.abs(true) > 0.5
+    assert (np.sign(vol.ravel()[clear]) == np.sign(true[clear])).all()
+
+
+def test_sdf_grid_for_nifti_inputs_reuses_the_input_grid():
+    aff = np.array([[0, -0.8, 0, 10], [0.7, 0, 0, -20], [0, 0, 2.5, 30], [0, 0, 0, 1]], dtype=float)
+    cloud = PointCloud(points=np.random.default_rng(0).random((10, 3)), nifti_affine=aff, nifti_shape=(100, 90, 40))
+    shape, out = sdf_grid_for(cloud, FRAME, SdfConfig())
+    assert shape == (100, 90, 40) and np.array_equal(out, aff)
+    shape, out = sdf_grid_for(cloud, FRAME, SdfConfig(max_voxels=100_000))  # every 2nd voxel
+    assert shape == (50, 45, 20) and np.prod(shape) <= 100_000
+    np.testing.assert_allclose(out[:3, :3], aff[:3, :3] * 2)
+    np.testing.assert_allclose(out[:3, 3], aff[:3, 3])
+
+
+def test_sdf_grid_caps_voxels():
+    pts = np.array([[0, 0, 0], [300, 200, 100]], dtype=float)
+    shape, aff = sdf_grid_for(PointCloud(points=pts), UnitFrame.fit(pts), SdfConfig(max_voxels=50_000, padding_mm=5))
+    assert np.prod(shape) <= 50_000
+    corner = aff[:3, :3] @ (np.array(shape) - 1) + aff[:3, 3]
+    assert (corner >= pts[1] + 5 - 1e-9).all() and np.allclose(aff[:3, 3], -5)
+
+
+def test_write_nifti_roundtrip(tmp_path):
+    aff = np.array([[-1.5, 0, 0, 90], [0, 1.5, 0, -120], [0, 0, 2.0, -60], [0, 0, 0, 1]])
+    vol = np.random.default_rng(1).normal(size=(6, 7, 8)).astype(np.float32)
+    p = write_nifti(tmp_path / "sdf.nii.gz", vol, aff)
+    img = nib.load(p)
+    np.testing.assert_allclose(img.affine, aff)
+    assert int(img.header["qform_code"]) == 1 and int(img.header["sform_code"]) == 1
+    assert img.header.get_xyzt_units()[0] == "mm"
+    np.testing.assert_array_equal(np.asanyarray(img.dataobj), vol)
+
+
+def test_query_field_in_mm(sphere_mesh):
+    c_mm = FRAME.to_mm(np.array([0.1, -0.2, 0.05]))
+    pts = c_mm + np.array([[0, 0, 0], [70, 0, 0], [0, -80, 0], [0, 0, 200]], dtype=float)
+    q = query_field(sphere_field(), FRAME, pts, mesh_mm=sphere_mesh)
+    np.testing.assert_array_equal(q["inside"], [True, True, False, False])
+    assert q["occupancy"][0] > 0.99 and q["occupancy"][3] < 0.01
+    np.testing.assert_allclose(q["U"], 2 * q["occupancy"] - 1, atol=1e-5)
+    np.testing.assert_allclose(q["sdf_mm"], [-75, -5, 5, 125], atol=0.05)
+    assert set(query_field(sphere_field(), FRAME, pts)) == {"occupancy", "U", "inside"}
+
+
+def test_render_preview_png(tmp_path, sphere_mesh):
+    from PIL import Image
+
+    big = trimesh.creation.torus(80, 20, major_sections=400, minor_sections=250)  # 200k faces
+    t = np.linspace(0, 2 * np.pi, 100)
+    p = render_preview(tmp_path / "preview.png", big, [np.stack([80 * np.cos(t), 80 * np.sin(t), 0 * t], 1)], "t")
+    im = np.asarray(Image.open(p).convert("RGB")).astype(int)
+    assert im.shape == (600, 1200, 3)
+    assert (im.sum(-1) < 600).mean() > 0.02  # mesh pixels, not just white
+    red = (im[..., 0] > 150) & (im[..., 1] < 90) & (im[..., 2] < 90)
+    assert red.sum() > 100  # the skeleton is drawn
+    assert render_preview(tmp_path / "empty.png", None).stat().st_size > 0

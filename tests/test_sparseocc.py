@@ -1,0 +1,148 @@
+"""SparseOcc: the paper's equations on analytic fields, the data-derived labels, the grid kernels,
+and short fits (the `paper` preset as a smoke, the `smoke` preset on a small phantom)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from ribpull_core.errors import JobCanceled
+from ribpull_core.fields import build_module
+from ribpull_core.fields.grid import GridOccupancyField
+from ribpull_core.losses import (
+    binary_entropy_from_logits,
+    margin_uncertainty,
+    minimax_entropy_loss,
+    minimax_weight,
+    pull_to_surface,
+    sampling_loss,
+)
+from ribpull_core.methods import build_fit_config
+from ribpull_core.methods.base import sample_pull_queries, warmup_cosine_lr
+from ribpull_core.methods.sparseocc import SparseOcc, margin_and_gradient, space_labels
+
+
+def sphere_points(n: int, r: float = 0.5, seed: int = 0) -> np.ndarray:
+    v = np.random.default_rng(seed).normal(size=(n, 3))
+    return r * v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+def test_pulled_query_of_a_sphere_field_lands_on_the_sphere():
+    # U = r - |x| is positive inside and has |grad U| = 1: one pull step (eq. 1) is exact
+    r = 0.5
+    q = torch.tensor(np.random.default_rng(1).uniform(-1, 1, (500, 3)), dtype=torch.float64, requires_grad=True)
+    u = r - q.norm(dim=-1)
+    (g,) = torch.autograd.grad(u.sum(), q)
+    pulled = pull_to_surface(q.detach(), u.detach(), g)
+    assert torch.allclose(pulled.norm(dim=-1), torch.full((500,), r, dtype=torch.float64), atol=1e-12)
+    # the sampling loss is zero when each target is the query's projection, and grows with an offset
+    target = r * q.detach() / q.detach().norm(dim=-1, keepdim=True)
+    assert float(sampling_loss(pulled, target)) < 1e-10
+    assert float(sampling_loss(pulled, target * 1.1)) == pytest.approx(10 * 0.05, rel=1e-6)
+
+
+def test_pull_is_scale_free_in_the_gradient_norm():
+    # the reference code divides by ||grad U|| (not squared): scaling U's slope changes the step
+    q = torch.tensor([[0.8, 0.0, 0.0]])
+    a = pull_to_surface(q, torch.tensor([-0.3]), torch.tensor([[-1.0, 0, 0]]))
+    b = pull_to_surface(q, torch.tensor([-0.3]), torch.tensor([[-5.0, 0, 0]]))
+    assert torch.allclose(a, b) and torch.allclose(a, torch.tensor([[0.5, 0.0, 0.0]]))
+
+
+def test_margin_uncertainty_and_entropy_values():
+    logits = torch.tensor([[0.0, 0.0], [-10.0, 10.0], [10.0, -10.0]])
+    u = margin_uncertainty(logits)
+    assert torch.allclose(u, torch.tensor([0.0, 1.0, -1.0]), atol=1e-6)
+    h = binary_entropy_from_logits(logits)
+    assert h[0] == pytest.approx(math.log(2), rel=1e-6) and h[1] < 1e-6
+    # eq. 2: minimise entropy at uniform points, maximise at input points
+    loss = minimax_entropy_loss(logits[1:], logits[:1], lambda_min=1.0, lambda_max=10.0)
+    assert float(loss) == pytest.approx(-10 * math.log(2), rel=1e-4)
+    assert minimax_weight(0, 1000) == 1.0 and minimax_weight(1000, 1000) == pytest.approx(1e-8)
+
+
+def test_learning_rate_warmup_then_cosine():
+    lrs = [warmup_cosine_lr(i, 100, 1.0, 10) for i in range(100)]
+    assert lrs[0] == pytest.approx(0.1) and lrs[9] == pytest.approx(1.0)
+    assert all(a >= b for a, b in zip(lrs[10:], lrs[11:])) and lrs[-1] < 0.01
+
+
+def test_query_sampling_follows_neural_pull():
+    pts = sphere_points(4000)
+    q, nn = sample_pull_queries(pts, 40_000, np.random.default_rng(0))
+    assert q.shape == (40_000, 3) and nn.shape == (40_000,)
+    # the recorded target is the nearest input point of each query
+    d_rec = np.linalg.norm(q - pts[nn], axis=1)
+    d_best = np.min(np.linalg.norm(q[:200, None, :] - pts[None], axis=2), axis=1)
+    assert np.allclose(d_rec[:200], d_best, atol=1e-6)
+
+
+def test_finite_difference_gradient_matches_autograd_on_a_smooth_field():
+    torch.manual_seed(0)
+    mlp = build_module({"name": "NeuralPullMLP", "kwargs": {"out_dim": 2, "hidden": 32, "layers": 3, "skip": None}}).double()
+    q = torch.rand(64, 3, dtype=torch.float64) * 0.6 + 0.1
+    u1, g1 = margin_and_gradient(mlp, q.clone(), "autograd", 0.0)
+    u2, g2 = margin_and_gradient(mlp, q.clone(), "finite_difference", 1e-6)
+    assert torch.allclose(u1, u2) and torch.allclose(g1, g2, atol=1e-4)
+
+
+def test_grid_kernels_match_the_torch_encoding_and_its_gradient():
+    torch.manual_seed(0)
+    m = GridOccupancyField(n_levels=6, log2_table=12, max_resolution=128)
+    with torch.no_grad():
+        m.embedding.weight.normal_()
+    x = torch.rand(3000, 3) * 2.6 - 1.3  # includes points outside the domain (clamped)
+    fast, ref = m.encode(x), m._encode_torch(x)
+    assert torch.allclose(fast, ref, atol=1e-4)  # fastmath float32 rounding
+    m.zero_grad()
+    (fast**2).sum().backward()
+    g_fast = m.embedding.weight.grad.clone()
+    m.zero_grad()
+    (ref**2).sum().backward()
+    assert torch.allclose(g_fast, m.embedding.weight.grad, rtol=1e-4, atol=1e-3)
+
+
+def test_space_labels_on_a_sphere_are_right():
+    pts = sphere_points(20_000, 0.5)
+    lab = space_labels(pts, np.random.default_rng(0), n_free=20_000)
+    assert (np.linalg.norm(lab.free, axis=1) > 0.5).all()  # free space is never inside
+    assert (np.linalg.norm(lab.near_in, axis=1) < 0.5).mean() > 0.99
+    assert (np.linalg.norm(lab.near_out, axis=1) > 0.5).mean() > 0.99
+    assert 0 < lab.offset < 0.1
+
+
+def test_paper_preset_runs_a_few_iterations():
+    cfg = build_fit_config("paper", iterations=3)
+    mc = dataclasses.replace(cfg.method_config, n_queries=20_000)
+    assert mc.network == "mlp" and mc.mlp_layers == 8 and mc.mlp_hidden == 256
+    field = SparseOcc(mc).fit(sphere_points(3000), torch.device("cpu"))
+    assert field.iterations_run == 3 and field.kind == "occupancy"
+    n_params = sum(p.numel() for p in field.module.parameters())
+    assert 450_000 < n_params < 470_000  # the paper's ~1.8 MB of fp32 weights
+
+
+def test_smoke_fit_separates_inside_from_outside_and_is_deterministic():
+    pts = sphere_points(4000, 0.5)
+    cfg = dataclasses.replace(build_fit_config("smoke").method_config, iterations=80)
+    f1 = SparseOcc(cfg).fit(pts, torch.device("cpu"))
+    probe = np.array([[0, 0, 0], [0.3, 0, 0], [0.9, 0.9, 0.9], [0, 0.8, 0]], np.float32)
+    s = f1.evaluate(probe)["inside_score"]
+    assert s[0] > f1.level and s[1] > f1.level and s[2] < f1.level and s[3] < f1.level
+    f2 = SparseOcc(cfg).fit(pts, torch.device("cpu"))
+    assert np.array_equal(f2.evaluate(probe)["inside_score"], s)
+
+
+def test_fit_can_be_canceled():
+    cfg = dataclasses.replace(build_fit_config("smoke").method_config, iterations=50)
+    calls = {"n": 0}
+
+    def cancel():
+        calls["n"] += 1
+        return calls["n"] > 2
+
+    with pytest.raises(JobCanceled):
+        SparseOcc(cfg).fit(sphere_points(2000), torch.device("cpu"), should_cancel=cancel)
