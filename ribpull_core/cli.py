@@ -15,10 +15,23 @@ from .errors import JobCanceled, RibPullInputError
 
 
 def _progress_bar():
-    """A tqdm bar driven by PipelineProgress reports (overall fraction, stage, loss)."""
+    """Progress on stderr: a tqdm bar on a terminal, one line per 5 % otherwise (logs, CI)."""
     from tqdm import tqdm
 
-    bar = tqdm(total=1000, unit="‰", bar_format="{desc} {percentage:3.0f}%|{bar}| {elapsed}<{remaining}", file=sys.stderr)
+    if not sys.stderr.isatty():
+        last = {"step": -1}
+
+        def on_line(p):
+            step = int(p.fraction * 20)
+            if step != last["step"]:
+                last["step"] = step
+                extra = f" it {p.iteration}/{p.iterations} loss {p.loss:.4f}" if p.iteration is not None else ""
+                print(f"[{p.fraction * 100:5.1f}%] {p.stage}{extra}", file=sys.stderr, flush=True)
+
+        return None, on_line
+
+    bar = tqdm(total=1000, bar_format="{desc} {percentage:3.0f}%|{bar}| {elapsed}<{remaining}", file=sys.stderr,
+               mininterval=0.2)
 
     def on_progress(p):
         bar.n = int(p.fraction * 1000)
@@ -27,8 +40,8 @@ def _progress_bar():
             desc += f" {p.iteration}/{p.iterations}"
         if p.loss is not None:
             desc += f" loss {p.loss:.4f}"
-        bar.set_description_str(desc.ljust(28))
-        bar.refresh()
+        bar.set_description_str(desc.ljust(28), refresh=False)
+        bar.update(0)
 
     return bar, on_progress
 

@@ -10,8 +10,8 @@ trilinear upsampling), so marching cubes still runs on a dense fine grid.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import torch
@@ -122,7 +122,7 @@ def mesh_grid(bounds_unit: tuple[np.ndarray, np.ndarray], config: MeshConfig) ->
     coarse = max(2, int(config.coarse_resolution))
     if res < 2:
         raise RibPullInputError("bad_parameter", f"mesh resolution must be >= 2, got {res}")
-    levels = max(0, int(math.floor(math.log2(res / coarse)))) if res > coarse else 0
+    levels = max(0, math.floor(math.log2(res / coarse))) if res > coarse else 0
     step = 2**levels
     h = float(ext.max()) / res
     cells = np.maximum(1, np.ceil(ext / h / step - 1e-9)).astype(int) * step
@@ -149,9 +149,10 @@ def extract_mesh(
     their coarse parent cell. A feature that fits between coarse nodes (thinner than about one coarse
     cell) can therefore be missed.
 
-    The fine grid is padded with one layer of "outside" so the mesh is closed where the field touches
-    the box. Faces are oriented outward (normals point to lower inside score). Components with fewer
-    than config.keep_components_min_fraction of the faces are dropped.
+    Where the inside touches the box, the fine grid is padded with one layer of "outside" so the mesh
+    is closed there (vertices then lie up to one fine cell outside the box). Faces are oriented
+    outward (normals point to lower inside score). Components with fewer than
+    config.keep_components_min_fraction of the faces are dropped (the largest is always kept).
 
     progress(fraction in [0, 1]) is called during the work; should_cancel() is checked before every
     block of network queries and raises JobCanceled. Raises RibPullInputError("degenerate") if the
@@ -217,15 +218,16 @@ def extract_mesh(
     del evaluated, crossing
     report(n_levels, 0.0)
 
-    # close the surface at the box: one layer of clearly-outside values
-    span = max(float(values.max()) - level, level - float(values.min()), 1e-6)
-    padded = np.pad(values, 1, mode="constant", constant_values=level - span)
+    # close the surface where it touches the box: one layer of clearly-outside values around it
+    touches = any((np.take(values, i, axis=a) > level).any() for a in range(3) for i in (0, -1))
+    if touches:
+        span = max(float(values.max()) - level, level - float(values.min()), 1e-6)
+        values = np.pad(values, 1, mode="constant", constant_values=level - span)
+    verts, faces, _normals, _ = measure.marching_cubes(values, level=level, gradient_direction="descent")
     del values
-    verts, faces, _normals, _ = measure.marching_cubes(padded, level=level, gradient_direction="descent")
-    del padded
     if len(faces) == 0:
         raise RibPullInputError("degenerate", "marching cubes found no surface at the field's level")
-    verts_unit = origin + (verts - 1.0) * h  # -1: the padding layer
+    verts_unit = origin + (verts - (1.0 if touches else 0.0)) * h  # the padding layer shifts indices
     verts_mm = frame.to_mm(verts_unit)
     # skimage winds its faces so that (right-hand) normals point to higher values: flip to outward
     mesh = trimesh.Trimesh(vertices=verts_mm, faces=faces[:, ::-1], process=True)
@@ -296,3 +298,42 @@ def export_mesh(
         mesh.export(path, file_type=fmt)
         paths[fmt] = path
     return paths
+
+
+def remove_unsupported_components(
+    mesh: trimesh.Trimesh, points_mm: np.ndarray, support_mm: float, min_support: float = 0.2
+) -> tuple[trimesh.Trimesh, dict]:
+    """Drop the pieces of a reconstruction that the data does not support.
+
+    A connected component is removed when it encloses negative volume (an inward-facing shell: a
+    cavity of the field inside a solid, which a segmentation's solid ribs do not have) or when fewer
+    than `min_support` of its vertices lie within `support_mm` of an input point (a speck the field
+    invented in empty space). points_mm: (N, 3) input points. Returns (mesh, counts of what was removed).
+    """
+    from scipy.spatial import cKDTree
+
+    comps = trimesh.graph.connected_components(mesh.face_adjacency, nodes=np.arange(len(mesh.faces)), min_len=1)
+    tree = cKDTree(points_mm)
+    near = tree.query(mesh.vertices, k=1, distance_upper_bound=support_mm, workers=-1)[0] < support_mm
+    keep, cavities, unsupported = [], 0, 0
+    tri = mesh.triangles
+    for faces in comps:
+        # signed volume by the divergence theorem (positive for an outward-facing closed shell)
+        t = tri[faces]
+        vol = np.einsum("ij,ij->i", t[:, 0], np.cross(t[:, 1], t[:, 2])).sum() / 6.0
+        if vol < 0:
+            cavities += 1
+            continue
+        if near[np.unique(mesh.faces[faces])].mean() < min_support:
+            unsupported += 1
+            continue
+        keep.append(faces)
+    info = {"components_before": len(comps), "removed_cavities": cavities, "removed_unsupported": unsupported}
+    if len(keep) == len(comps):
+        return mesh, info
+    if not keep:
+        raise RibPullInputError("degenerate", "the reconstruction has no surface near the input points; "
+                                "try more iterations or check the input")
+    out = mesh.submesh([np.concatenate(keep)], append=True)
+    out.metadata.update(mesh.metadata)
+    return out, info

@@ -122,8 +122,8 @@ def surface_metrics(
         "precision": precision,
         "recall": recall,
         "tau_mm": float(tau_mm),
-        "n_samples": int(len(pp)),
-        "n_reference": int(len(rp)),
+        "n_samples": len(pp),
+        "n_reference": len(rp),
     }
     if paper_units_per_mm is not None:
         k = float(paper_units_per_mm)
@@ -157,8 +157,8 @@ def mesh_summary(mesh: trimesh.Trimesh) -> dict:
     """n_vertices, n_faces, components, watertight, area_mm2, volume_mm3 (None unless watertight)."""
     watertight = bool(mesh.is_watertight) if len(mesh.faces) else False
     return {
-        "n_vertices": int(len(mesh.vertices)),
-        "n_faces": int(len(mesh.faces)),
+        "n_vertices": len(mesh.vertices),
+        "n_faces": len(mesh.faces),
         "components": count_components(mesh),
         "watertight": watertight,
         "area_mm2": float(mesh.area),

@@ -265,7 +265,7 @@ def run_pipeline(
 
 def _write_surface_artifacts(cloud, field, frame, fit_config, tmp: Path, report: _Reporter, timed) -> dict:
     """Mesh (PLY/STL/OBJ/GLB), SDF NIfTI and weights into `tmp`; returns name -> path (+ "_mesh")."""
-    from .mesh import export_mesh, extract_mesh
+    from .mesh import export_mesh, extract_mesh, remove_unsupported_components
     from .sdf import sdf_grid_for, signed_distance_volume, write_nifti
     from .weights import save_field
 
@@ -273,7 +273,9 @@ def _write_surface_artifacts(cloud, field, frame, fit_config, tmp: Path, report:
     with timed("mesh"):
         mesh = extract_mesh(field, frame, (lo, hi), fit_config.mesh, progress=lambda f: report("mesh", f),
                             should_cancel=report.should_cancel)
-        artifacts = {k: Path(v) for k, v in export_mesh(mesh, tmp).items()}
+        mesh, cleanup = remove_unsupported_components(mesh, cloud.points, support_distance_mm(cloud.points))
+        mesh.metadata["cleanup"] = cleanup
+        artifacts = {Path(v).name: Path(v) for v in export_mesh(mesh, tmp).values()}
     with timed("sdf"):
         shape, affine = sdf_grid_for(cloud, frame, fit_config.sdf)
         volume = signed_distance_volume(mesh, field, frame, shape, affine)
@@ -282,6 +284,16 @@ def _write_surface_artifacts(cloud, field, frame, fit_config, tmp: Path, report:
     artifacts["model.safetensors"], artifacts["model.json"] = Path(st), Path(js)
     artifacts["_mesh"] = mesh
     return artifacts
+
+
+def support_distance_mm(points_mm: np.ndarray) -> float:
+    """How far from the input a reconstructed surface may lie and still count as supported (mm):
+    twice the median distance to the 8th neighbour, i.e. a couple of sampling gaps."""
+    from scipy.spatial import cKDTree
+
+    sample = points_mm[:: max(1, len(points_mm) // 50_000)]
+    d, _ = cKDTree(points_mm).query(sample, k=min(9, len(points_mm)), workers=-1)
+    return 2.0 * float(np.median(d[:, -1]))
 
 
 def _skeleton_of(mesh, cloud, report: _Reporter, n_points: int = 20_000):
@@ -302,9 +314,10 @@ def _skeleton_of(mesh, cloud, report: _Reporter, n_points: int = 20_000):
 
 
 def _polylines(skeleton) -> list[np.ndarray]:
+    """The skeleton's polylines as (m, 3) mm arrays (skeleton_polylines gives node ids)."""
     from .skeleton.export import skeleton_polylines
 
-    return skeleton_polylines(skeleton)
+    return [skeleton.nodes_mm[ids] for ids in skeleton_polylines(skeleton)]
 
 
 def _metrics(cloud, reference, reference_name, mesh, field, frame, fit_config, skeleton) -> dict:
@@ -325,7 +338,8 @@ def _metrics(cloud, reference, reference_name, mesh, field, frame, fit_config, s
         "surface_level": field.level,
         "reference": reference_name,
         "surface": surface,
-        "mesh": mesh_summary(mesh),
+        "mesh": {**mesh_summary(mesh), **mesh.metadata.get("cleanup", {}),
+                 "field_queries": mesh.metadata.get("field_queries"), "dense_queries": mesh.metadata.get("dense_queries")},
         "weights": compression_metrics(cloud.source_bytes, field.module),
         "frame": frame.to_dict(),
     }

@@ -198,3 +198,44 @@ def test_render_preview_png(tmp_path, sphere_mesh):
     red = (im[..., 0] > 150) & (im[..., 1] < 90) & (im[..., 2] < 90)
     assert red.sum() > 100  # the skeleton is drawn
     assert render_preview(tmp_path / "empty.png", None).stat().st_size > 0
+
+
+def test_surface_cut_by_the_box_is_closed():
+    field = sphere_field(centre=(0.0, 0.0, 0.0), radius=0.5)
+    box = (np.full(3, -0.3), np.full(3, 0.3))  # the ball fills the corners of the padded box
+    m = extract_mesh(field, FRAME, box, MeshConfig(resolution=32, coarse_resolution=8))
+    assert m.is_watertight and m.volume > 0
+    np.testing.assert_allclose(m.bounds, FRAME.to_mm(np.array([[-0.35] * 3, [0.35] * 3])), atol=0.7 * 150 / 32)
+
+
+def test_small_components_dropped_on_request():
+    field = FittedField(Spheres([(-0.4, 0, 0), (0.4, 0.1, 0)], [0.3, 0.1]), kind="occupancy")
+    cfg = MeshConfig(resolution=48, coarse_resolution=12, keep_components_min_fraction=0.2)
+    m = extract_mesh(field, FRAME, BOX, cfg)
+    assert count_components(m) == 1 and m.metadata["field_queries"] > 0
+    assert np.cbrt(m.volume * 3 / (4 * np.pi)) == pytest.approx(0.3 * 150, rel=0.02)
+
+
+def test_real_network_surface_sits_on_its_level_set():
+    from ribpull_core.fields import NeuralPullMLP
+
+    torch.manual_seed(0)
+    arch = {"name": "NeuralPullMLP", "kwargs": {"hidden": 64, "layers": 4, "skip": 2}}
+    field = FittedField(NeuralPullMLP(**arch["kwargs"]), kind="occupancy", arch=arch)
+    m = extract_mesh(field, FRAME, BOX, MeshConfig(resolution=48, coarse_resolution=12))
+    assert m.is_watertight and m.volume > 0
+    step = 0.5 * m.metadata["voxel_mm"]
+    v_unit = FRAME.to_unit(m.vertices)
+    level_set = np.abs(v_unit).max(axis=1) < 0.8  # leave out the cap closing the surface at the box
+    v, n = m.vertices[level_set], m.vertex_normals[level_set]
+    assert level_set.mean() > 0.3
+    outside = field.evaluate(FRAME.to_unit(v + step * n))["inside_score"] < field.level
+    inside = field.evaluate(FRAME.to_unit(v - step * n))["inside_score"] > field.level
+    assert outside.mean() > 0.97 and inside.mean() > 0.97  # outward normals, surface at the level
+
+
+def test_sdf_volume_can_be_canceled(sphere_mesh):
+    shape, affine = sdf_grid_for(PointCloud(points=sphere_mesh.vertices), FRAME, SdfConfig(voxel_mm=10.0))
+    with pytest.raises(JobCanceled):
+        signed_distance_volume(sphere_mesh, sphere_field(), FRAME, shape, affine, n_samples=10_000,
+                               should_cancel=lambda: True)

@@ -148,16 +148,16 @@ def sweep(sm: sessionmaker, settings: Settings, requeue) -> dict[str, list[str]]
             Job.status == "running", or_(Job.heartbeat_at.is_(None), Job.heartbeat_at < cut))))
         for job in rows:
             if job.cancel_requested:
-                vals = dict(status="canceled", finished_at=now, message="canceled (its worker had stopped)")
+                vals = {"status": "canceled", "finished_at": now, "message": "canceled (its worker had stopped)"}
                 key = "canceled"
             elif job.attempts >= settings.max_attempts:
-                vals = dict(status="failed", finished_at=now, error_code="worker_lost",
-                            error_message=f"no heartbeat for {settings.stale_after:g} s after {job.attempts} "
+                vals = {"status": "failed", "finished_at": now, "error_code": "worker_lost",
+                            "error_message": f"no heartbeat for {settings.stale_after:g} s after {job.attempts} "
                                           f"attempts (RIBPULL_MAX_ATTEMPTS={settings.max_attempts}); "
-                                          "the worker running it stopped")
+                                          "the worker running it stopped"}
                 key = "failed"
             else:
-                vals = dict(status="queued", message="re-queued: its worker stopped sending heartbeats")
+                vals = {"status": "queued", "message": "re-queued: its worker stopped sending heartbeats"}
                 key = "requeued"
             n = s.execute(update(Job).where(*_cas(job)).values(claim_token=None, updated_at=now, **vals)).rowcount
             s.commit()

@@ -146,7 +146,7 @@ def warmup_cosine_lr(iteration: int, total: int, base_lr: float, warmup: int, fi
 def knn_sigma(points: np.ndarray, k: int = 50) -> np.ndarray:
     """(N,) distance from each point to its k-th nearest neighbour (Neural-Pull's local scale)."""
     k = int(min(k, len(points) - 1))
-    d, _ = cKDTree(points).query(points, k=k + 1)
+    d, _ = cKDTree(points).query(points, k=k + 1, workers=-1)
     return d[:, -1]
 
 
@@ -156,21 +156,26 @@ def sample_pull_queries(
     rng: np.random.Generator,
     k: int = 50,
     scale: float | None = None,
+    sigma: np.ndarray | None = None,
+    tree: cKDTree | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Neural-Pull query sampling around the input points.
 
     points: (N, 3) unit frame. Each point spawns ~total_queries/N queries q = p + s*sigma_p*N(0, I),
-    sigma_p = distance to the k-th neighbour, s = 0.25*sqrt(N/20000) unless given.
+    sigma_p = distance to the k-th neighbour (pass `sigma`/`tree` to reuse them across calls),
+    s = 0.25*sqrt(N/20000) unless given.
     Returns (queries (Q, 3) float32, index (Q,) of the nearest input point of each query).
     """
     n = len(points)
-    sigma = knn_sigma(points, k)
+    tree = tree if tree is not None else cKDTree(points)
+    if sigma is None:
+        sigma = knn_sigma(points, k)
     if scale is None:
         scale = 0.25 * math.sqrt(n / 20000.0)
     per = max(1, int(round(total_queries / n)))
     src = np.repeat(np.arange(n), per)
     q = points[src] + (scale * sigma[src])[:, None] * rng.standard_normal((len(src), 3))
-    _, nn = cKDTree(points).query(q, k=1)
+    _, nn = tree.query(q, k=1, workers=-1)
     return q.astype(np.float32), nn.astype(np.int64)
 
 

@@ -41,6 +41,7 @@ from .base import (
     ProgressFn,
     ProgressThrottle,
     check_cancel,
+    knn_sigma,
     sample_pull_queries,
     seed_everything,
     warmup_cosine_lr,
@@ -336,25 +337,7 @@ class SparseOcc(Method):
                 check_cancel(should_cancel)
             for g in groups:
                 g["lr"] = warmup_cosine_lr(it, cfg.iterations, g["base_lr"], cfg.warmup, cfg.final_lr_ratio)
-            idx = torch.randint(0, len(q_all), (cfg.batch_size,), device=device, generator=gen)
-            q, target = q_all[idx].clone(), target_all[idx]
-            j0, j1 = cfg.query_jitter
-            if j0 > 0 or j1 > 0:
-                q = q + (j0 + (j1 - j0) * it / max(1, cfg.iterations - 1)) * torch.randn(q.shape, device=device, generator=gen)
-            u, grad_u = margin_and_gradient(module, q, cfg.gradient, fd_step)
-            loss = sampling_loss(pull_to_surface(q, u, grad_u), target, cfg.sampling_weight)
-            w_entropy = minimax_weight(it, cfg.n_minimax)
-            if w_entropy > 1e-6 and (cfg.lambda_max > 0 or cfg.lambda_min > 0):
-                sel = torch.randint(0, len(pts_t), (cfg.entropy_input_points,), device=device, generator=gen)
-                uni = lo + (hi - lo) * torch.rand((cfg.entropy_uniform_points, 3), device=device, generator=gen)
-                loss = loss + w_entropy * minimax_entropy_loss(module(uni), module(pts_t[sel]), cfg.lambda_min, cfg.lambda_max)
-            if free is not None and len(free):
-                fidx = torch.randint(0, len(free), (cfg.free_space_points,), device=device, generator=gen)
-                loss = loss + cfg.free_space_weight * free_space_loss(module(free[fidx]))
-            if near is not None:
-                nidx = torch.randint(0, len(near), (cfg.near_surface_points,), device=device, generator=gen)
-                inside = nidx < len(near) // 2  # first half are the inside points
-                loss = loss + cfg.near_surface_weight * occupancy_label_loss(module(near[nidx]), inside)
+            loss = self._step_loss(module, it, q_all, target_all, pts_t, free, near, lo, hi, fd_step, gen)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
@@ -371,12 +354,56 @@ class SparseOcc(Method):
         fitted.level = float(np.median(fitted.evaluate(pts.astype(np.float32))["U"]))
         return fitted
 
+    def _step_loss(self, module, it, q_all, target_all, pts_t, free, near, lo, hi, fd_step, gen) -> torch.Tensor:
+        """Total loss of one iteration. All points of the iteration go through the network in ONE
+        forward pass (on a CPU the per-call overhead dominates small batches), then each term takes
+        its slice: pull queries (+ finite-difference probes), entropy points, free space, near surface."""
+        cfg: SparseOccConfig = self.config
+        device = q_all.device
+        idx = torch.randint(0, len(q_all), (cfg.batch_size,), device=device, generator=gen)
+        q, target = q_all[idx], target_all[idx]
+        j0, j1 = cfg.query_jitter
+        if j0 > 0 or j1 > 0:
+            q = q + (j0 + (j1 - j0) * it / max(1, cfg.iterations - 1)) * torch.randn(q.shape, device=device, generator=gen)
+        if cfg.gradient == "autograd":
+            u, grad_u = margin_and_gradient(module, q.clone(), "autograd", fd_step)
+            parts: dict[str, torch.Tensor] = {}
+        else:
+            eye = torch.eye(3, dtype=q.dtype, device=device) * fd_step
+            parts = {"q": q, "probe": (q[:, None, :] + eye).reshape(-1, 3)}
+        w_entropy = minimax_weight(it, cfg.n_minimax)
+        use_entropy = w_entropy > 1e-6 and (cfg.lambda_max > 0 or cfg.lambda_min > 0)
+        if use_entropy:
+            parts["uniform"] = lo + (hi - lo) * torch.rand((cfg.entropy_uniform_points, 3), device=device, generator=gen)
+            parts["on_input"] = pts_t[torch.randint(0, len(pts_t), (cfg.entropy_input_points,), device=device, generator=gen)]
+        if free is not None and len(free):
+            parts["free"] = free[torch.randint(0, len(free), (cfg.free_space_points,), device=device, generator=gen)]
+        if near is not None:
+            nidx = torch.randint(0, len(near), (cfg.near_surface_points,), device=device, generator=gen)
+            parts["near"] = near[nidx]
+        logits = dict(zip(parts, torch.split(module(torch.cat(list(parts.values()))), [len(v) for v in parts.values()]))) if parts else {}
+        if cfg.gradient != "autograd":
+            u = margin_uncertainty(logits["q"])
+            grad_u = (margin_uncertainty(logits["probe"]).view(-1, 3) - u[:, None]) / fd_step  # forward differences
+        loss = sampling_loss(pull_to_surface(q, u, grad_u), target, cfg.sampling_weight)
+        if use_entropy:
+            loss = loss + w_entropy * minimax_entropy_loss(logits["uniform"], logits["on_input"], cfg.lambda_min, cfg.lambda_max)
+        if "free" in logits:
+            loss = loss + cfg.free_space_weight * free_space_loss(logits["free"])
+        if "near" in logits:
+            inside = nidx < len(near) // 2  # the first half of `near` are the inside points
+            loss = loss + cfg.near_surface_weight * occupancy_label_loss(logits["near"], inside)
+        return loss
+
     def _queries(self, pts: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
         """Neural-Pull queries, split evenly over `query_scales`."""
         cfg: SparseOccConfig = self.config
         base = 0.25 * math.sqrt(len(pts) / 20000.0)
         per = cfg.n_queries // len(cfg.query_scales)
-        qs, nn = zip(*(sample_pull_queries(pts, per, rng, k=cfg.knn, scale=base * s) for s in cfg.query_scales))
+        tree = cKDTree(pts)
+        sigma = knn_sigma(pts, cfg.knn)
+        qs, nn = zip(*(sample_pull_queries(pts, per, rng, k=cfg.knn, scale=base * s, sigma=sigma, tree=tree)
+                       for s in cfg.query_scales))
         return np.concatenate(qs), np.concatenate(nn)
 
     def _converged(self, history: list[float], window_means: list[float], it: int) -> bool:

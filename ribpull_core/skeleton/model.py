@@ -177,6 +177,15 @@ class Skeleton:
             "info": _jsonable(self.info),
         }
 
+    @classmethod
+    def from_json(cls, d: dict) -> "Skeleton":
+        """Inverse of `to_json` (nodes rounded to 1e-4 mm), e.g. to score a saved skeleton.json."""
+        if d.get("units", "mm") != "mm":
+            raise ValueError(f"skeleton units {d.get('units')!r}; expected 'mm'")
+        fields = ("label", "label_id", "node_ids", "length_mm", "mean_radius_mm", "min_radius_mm", "max_curvature_per_mm")
+        curves = [RibCurve(**{k: c[k] for k in fields}) for c in d.get("components", [])]
+        return cls(d["nodes"], d["edges"], d["radius"], curves, d.get("info", {}))
+
 
 def _jsonable(x):
     """Convert numpy scalars/arrays nested in dicts/lists to plain Python for json.dump."""

@@ -1,0 +1,146 @@
+"""End to end through run_pipeline (the function the CLI, worker and benchmark share), and the CLI."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import nibabel as nib
+import numpy as np
+import pygltflib
+import pytest
+import trimesh
+
+from ribpull_core.cli import main as cli_main
+from ribpull_core.errors import JobCanceled, RibPullInputError
+from ribpull_core.io import write_point_cloud
+from ribpull_core.phantom import PhantomConfig, make_phantom, sample_surface
+from ribpull_core.pipeline import ARTIFACT_NAMES, PipelineOptions, run_pipeline
+from ribpull_core.weights import load_field
+
+TOTALSEG = Path(__file__).resolve().parents[2] / "shared" / "data" / "totalseg_example_seg.nii.gz"
+FOUR_RIBS = tuple(f"{s}{n}" for s in "LR" for n in range(1, 13) if n not in (5, 6))  # keep L5 L6 R5 R6
+
+
+@pytest.fixture(scope="module")
+def small_phantom(tmp_path_factory):
+    cfg = PhantomConfig(seed=0, missing_ribs=FOUR_RIBS)
+    phantom = make_phantom(cfg)
+    cloud = sample_surface(phantom, 12_000, 0.3, seed=0)
+    path = tmp_path_factory.mktemp("ph") / "points.ply"
+    write_point_cloud(path, cloud)
+    return phantom, path
+
+
+@pytest.fixture(scope="module")
+def fitted(small_phantom, tmp_path_factory):
+    _, path = small_phantom
+    out = tmp_path_factory.mktemp("fit") / "out"
+    seen = []
+    result = run_pipeline(path, out, PipelineOptions(preset="smoke", metrics_samples=20_000), progress=seen.append)
+    return result, seen
+
+
+def test_pipeline_writes_every_artifact_in_mm(fitted, small_phantom):
+    result, seen = fitted
+    phantom, _ = small_phantom
+    assert set(result.artifacts) == set(ARTIFACT_NAMES)
+    for name in ARTIFACT_NAMES:
+        assert (result.outdir / name).stat().st_size > 0, name
+    mesh = trimesh.load(result.outdir / "mesh.ply", force="mesh")
+    # the mesh lies in the input's mm frame, on top of the phantom
+    lo, hi = phantom.mesh.bounds
+    assert np.all(mesh.bounds[0] > lo - 10) and np.all(mesh.bounds[1] < hi + 10)
+    # progress is monotone, covers the stages and ends at 1
+    fr = [p.fraction for p in seen]
+    assert fr == sorted(fr) and fr[-1] == pytest.approx(1.0)
+    assert {"load", "fit", "mesh", "sdf", "skeleton", "metrics", "export"} <= {p.stage for p in seen}
+
+
+def test_pipeline_metrics_and_weights(fitted):
+    result, _ = fitted
+    m = json.loads((result.outdir / "metrics.json").read_text())
+    assert m["units"] == "mm" and m["method"] == "sparseocc" and m["iterations_run"] > 0
+    s = m["surface"]
+    assert s["cd_l1_mm"] < 3.0 and 0 < s["fscore"] <= 1
+    assert s["cd_l1_paper"] == pytest.approx(s["cd_l1_mm"] * 100 / m["frame"]["half_extent_mm"], rel=1e-6)
+    assert m["weights"]["weights_bytes_fp16"] * 2 == m["weights"]["weights_bytes_fp32"]
+    # loading the weights reproduces the field exactly
+    field, frame, meta = load_field(result.outdir)
+    assert meta["frame"] == m["frame"] and field.level == pytest.approx(m["surface_level"])
+
+
+def test_pipeline_separates_the_ribs(fitted):
+    result, _ = fitted
+    m = json.loads((result.outdir / "metrics.json").read_text())
+    assert m["mesh"]["components"] == 4
+    skel = json.loads((result.outdir / "skeleton.json").read_text())
+    assert skel["units"] == "mm" and sorted(c["label"] for c in skel["components"]) == ["L5", "L6", "R5", "R6"]
+
+
+def test_skeleton_glb_has_lines_and_triangles(fitted):
+    result, _ = fitted
+    gltf = pygltflib.GLTF2().load(str(result.outdir / "skeleton.glb"))
+    modes = {p.mode for mesh in gltf.meshes for p in mesh.primitives}
+    assert 1 in modes and 4 in modes
+    assert len(trimesh.load(result.outdir / "skeleton.glb").geometry) >= 2
+
+
+def test_sdf_is_negative_inside_and_in_mm(fitted, small_phantom):
+    result, _ = fitted
+    phantom, _ = small_phantom
+    img = nib.load(result.outdir / "sdf.nii.gz")
+    vol = np.asarray(img.dataobj)
+    # a point on a true centerline is inside (negative), and its distance is about the rib's radius
+    c = phantom.ribs[0].centerline_mm[250]
+    ijk = np.round(np.linalg.inv(img.affine) @ np.append(c, 1))[:3].astype(int)
+    assert vol[tuple(ijk)] < 0 and -8 < vol[tuple(ijk)]
+    assert vol.max() > 10  # far corners are outside, distances in mm
+
+
+def test_cancel_leaves_no_output(small_phantom, tmp_path):
+    _, path = small_phantom
+    out = tmp_path / "out"
+    with pytest.raises(JobCanceled):
+        run_pipeline(path, out, PipelineOptions(preset="smoke"), should_cancel=lambda: True)
+    assert not out.exists() and not list(tmp_path.glob(".ribpull-*"))
+
+
+def test_bad_options_are_input_errors(small_phantom, tmp_path):
+    _, path = small_phantom
+    for opts in (PipelineOptions(preset="nope"), PipelineOptions(method="nope"), PipelineOptions(iterations=0),
+                 PipelineOptions(resolution=4), PipelineOptions(device="tpu")):
+        with pytest.raises(RibPullInputError):
+            run_pipeline(path, tmp_path / "o", opts)
+
+
+@pytest.mark.skipif(not TOTALSEG.exists(), reason="shared data not present")
+def test_real_totalsegmentator_map_is_reconstructed_on_the_mask(tmp_path):
+    result = run_pipeline(TOTALSEG, tmp_path / "ts", PipelineOptions(preset="smoke", metrics_samples=20_000))
+    m = result.metrics
+    assert m["input"]["labels"] == list(range(98, 104)) + list(range(110, 116))
+    # the SDF volume is on the input's own grid
+    sdf, seg = nib.load(result.outdir / "sdf.nii.gz"), nib.load(TOTALSEG)
+    assert sdf.shape == seg.shape and np.allclose(sdf.affine, seg.affine)
+    # the surface lies on the mask (3 mm voxels): mesh samples are near the selected voxel centres
+    from ribpull_core.io import load_point_cloud
+    from scipy.spatial import cKDTree
+
+    cloud = load_point_cloud(TOTALSEG)
+    mesh = trimesh.load(result.outdir / "mesh.ply", force="mesh")
+    d = cKDTree(cloud.points).query(mesh.sample(20_000))[0]
+    assert d.mean() < 3.0
+    names = {c["label"] for c in json.loads((result.outdir / "skeleton.json").read_text())["components"]}
+    assert names & {f"L{n}" for n in range(7, 13)} and names & {f"R{n}" for n in range(7, 13)}
+
+
+def test_cli_fit_and_phantom(tmp_path, capsys):
+    assert cli_main(["phantom", str(tmp_path / "ph"), "--points", "8000", "--missing", *FOUR_RIBS]) == 0
+    rc = cli_main(["fit", str(tmp_path / "ph" / "points.ply"), "-o", str(tmp_path / "fit"), "--preset", "smoke",
+                   "--iterations", "30", "--no-skeleton", "--no-preview", "-q"])
+    assert rc == 0 and (tmp_path / "fit" / "mesh.glb").exists()
+    assert "CD-L1" in capsys.readouterr().out
+    (tmp_path / "bad.ply").write_text("ply\nformat ascii 1.0\nelement vertex 500\nproperty float x\nproperty float y\n"
+                                      "property float z\nend_header\n0 0 0\n")
+    assert cli_main(["fit", str(tmp_path / "bad.ply"), "-o", str(tmp_path / "x"), "-q"]) == 2
+    assert "header" in capsys.readouterr().err
