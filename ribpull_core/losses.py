@@ -141,3 +141,14 @@ def divergence_weight(
     if t >= zero_from:
         return 0.0
     return w0 * (1.0 - (t - hold_until) / (zero_from - hold_until))
+
+
+def sign_margin_loss(u: torch.Tensor, inside: torch.Tensor, margin: torch.Tensor) -> torch.Tensor:
+    """RibPull's data-derived supervision as a hinge on the margin uncertainty U (B,).
+
+    Points known to be inside need U >= margin, outside ones U <= -margin; mean relu(margin - y*U)
+    with y = +1/-1. The margin (B,) is about half the point's distance to the surface in unit-frame
+    units, which agrees with eq. 1's pull: one Newton step of length U lands on the surface only if U
+    behaves like a signed distance near it (a cross-entropy would push U to +-1 there instead)."""
+    y = inside.to(u.dtype) * 2 - 1
+    return torch.relu(margin - y * u).mean()

@@ -301,20 +301,23 @@ def export_mesh(
 
 
 def remove_unsupported_components(
-    mesh: trimesh.Trimesh, points_mm: np.ndarray, support_mm: float, min_support: float = 0.2
+    mesh: trimesh.Trimesh, points_mm: np.ndarray, support_mm: float, min_support: float = 0.2,
+    min_input_points: int = 20,
 ) -> tuple[trimesh.Trimesh, dict]:
     """Drop the pieces of a reconstruction that the data does not support.
 
     A connected component is removed when it encloses negative volume (an inward-facing shell: a
     cavity of the field inside a solid, which a segmentation's solid ribs do not have) or when fewer
     than `min_support` of its vertices lie within `support_mm` of an input point (a speck the field
-    invented in empty space). points_mm: (N, 3) input points. Returns (mesh, counts of what was removed).
+    invented in empty space), or when fewer than `min_input_points` distinct input points are the
+    nearest point of one of its vertices (a noise blob; a real fragment of a rib touches hundreds). points_mm: (N, 3) input points. Returns (mesh, counts of what was removed).
     """
     from scipy.spatial import cKDTree
 
     comps = trimesh.graph.connected_components(mesh.face_adjacency, nodes=np.arange(len(mesh.faces)), min_len=1)
     tree = cKDTree(points_mm)
-    near = tree.query(mesh.vertices, k=1, distance_upper_bound=support_mm, workers=-1)[0] < support_mm
+    dist, nearest = tree.query(mesh.vertices, k=1, distance_upper_bound=support_mm, workers=-1)
+    near = dist < support_mm
     keep, cavities, unsupported = [], 0, 0
     tri = mesh.triangles
     for faces in comps:
@@ -324,7 +327,8 @@ def remove_unsupported_components(
         if vol < 0:
             cavities += 1
             continue
-        if near[np.unique(mesh.faces[faces])].mean() < min_support:
+        verts = np.unique(mesh.faces[faces])
+        if near[verts].mean() < min_support or len(np.unique(nearest[verts[near[verts]]])) < min_input_points:
             unsupported += 1
             continue
         keep.append(faces)

@@ -8,7 +8,8 @@ them to their nearest input point. Paper eq. 2: minimax entropy regulariser. Pre
 - ``default``: RibPull's CPU configuration. Same losses, plus (a) free-space supervision: points
   that a flood fill from the bounding box reaches without crossing the (voxelised, dilated) input
   are outside — the sign far from the points is otherwise unconstrained and the field can close the
-  thorax into one blob; (b) multi-scale queries; (c) a hash-grid encoded field with a tiny decoder;
+  thorax into one blob; near-surface inside/outside points along normals oriented by that flood fill,
+  both as hinges on U that agree with eq. 1's pull; (b) multi-scale queries; (c) a hash-grid encoded field with a tiny decoder;
   (d) early stopping when the loss stops improving.
 - ``smoke``: a few seconds, for tests.
 """
@@ -26,8 +27,7 @@ from scipy.spatial import cKDTree
 
 from ..fields import build_module
 from ..losses import (
-    free_space_loss,
-    occupancy_label_loss,
+    sign_margin_loss,
     margin_uncertainty,
     minimax_entropy_loss,
     minimax_weight,
@@ -113,14 +113,16 @@ def paper_config() -> SparseOccConfig:
 
 
 def default_config() -> SparseOccConfig:
-    """RibPull's CPU default: grid field, free space, multi-scale queries, early stopping."""
+    """RibPull's CPU default: hash-grid field trained with the SparseOcc losses plus data-derived
+    sign supervision (free space and near-surface hinges), multi-scale queries, early stopping.
+    Measured on the phantom in docs/benchmarks.md."""
     return SparseOccConfig(
-        iterations=800,
+        iterations=1000,
         batch_size=2048,
         network="grid",
-        grid_levels=10,
+        grid_levels=8,
         grid_log2_table=18,
-        grid_max_resolution=512,
+        grid_max_resolution=256,
         gradient="finite_difference",
         lr=2e-3,
         grid_lr=2e-2,
@@ -133,11 +135,13 @@ def default_config() -> SparseOccConfig:
         entropy_uniform_points=1000,
         lambda_max=1.0,
         n_minimax=200,
-        free_space_weight=1.0,
+        free_space_weight=10.0,
         free_space_points=2048,
-        near_surface_weight=1.0,
+        near_surface_weight=10.0,
         near_surface_points=4096,
         early_stop_window=100,
+        early_stop_rel_tol=0.005,
+        early_stop_min_fraction=0.6,
     )
 
 
@@ -162,9 +166,9 @@ def smoke_config() -> SparseOccConfig:
         entropy_uniform_points=500,
         lambda_max=1.0,
         n_minimax=50,
-        free_space_weight=1.0,
+        free_space_weight=10.0,
         free_space_points=2048,
-        near_surface_weight=1.0,
+        near_surface_weight=10.0,
         near_surface_points=2048,
     )
 
@@ -176,41 +180,48 @@ def smoke_config() -> SparseOccConfig:
 class SpaceLabels:
     """Occupancy labels derived from the data (unit frame).
 
-    free: (M, 3) points certainly outside. near_in / near_out: (K, 3) points just inside / outside
+    free: (M, 3) points certainly outside; free_distance: (M,) their distance to the nearest input
+    point. near_in / near_out: (K, 3) points just inside / outside
     the sampled surface (input point -/+ offset along its normal, oriented by the flood fill).
     spacing: flood-fill voxel size; offset: the normal offset used.
     """
 
     free: np.ndarray
+    free_distance: np.ndarray
     near_in: np.ndarray
     near_out: np.ndarray
     spacing: float
     offset: float
 
 
-def outside_mask(points_unit: np.ndarray, max_cells: int = 256) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
-    """Flood-fill the empty space around the points; returns (outside (X,Y,Z) bool, occupied bool,
+def outside_mask(points_unit: np.ndarray, block_factor: float = 1.0, max_cells: int = 384
+                 ) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
+    """Flood-fill the empty space around the points; returns (outside (X,Y,Z) bool, blocked bool,
     spacing, origin (3,)).
 
-    Voxelise the input at a spacing derived from the data (1.5x the median distance to the 8th
-    neighbour, so the voxelised surface has no holes), dilate by one voxel, flood-fill from the border
-    of a padded box: every reached voxel is outside. Cavities (rib interiors, closed shells) are never
-    reached, so they are never labelled.
+    A voxel is blocked when it lies within r = block_factor x (median distance to the 8th neighbour)
+    of an input point: r closes the gaps between neighbouring samples, so the blocked shell has no
+    holes, yet stays thin enough that narrow gaps between ribs stay open. Voxels are r/2 wide (at
+    most max_cells along the longest side). Every voxel reached from the border of a padded box
+    without crossing the shell is outside. Cavities (rib interiors) are never reached, so they are
+    never labelled.
     """
-    d8, _ = cKDTree(points_unit).query(points_unit, k=min(9, len(points_unit)))
-    spacing = 1.5 * float(np.median(d8[:, -1]))
+    tree = cKDTree(points_unit)
+    d8, _ = tree.query(points_unit[:: max(1, len(points_unit) // 50_000)], k=min(9, len(points_unit)), workers=-1)
+    block = block_factor * float(np.median(d8[:, -1]))
     lo, hi = points_unit.min(0), points_unit.max(0)
-    spacing = max(spacing, float((hi - lo).max() + 0.2) / max_cells)
-    origin = lo - 3 * spacing
-    shape = np.ceil((hi - lo) / spacing).astype(int) + 7
-    occupied = np.zeros(shape, bool)
-    ijk = np.floor((points_unit - origin) / spacing).astype(int)
-    occupied[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = True
-    occupied = ndimage.binary_dilation(occupied, iterations=1)
-    labels, _ = ndimage.label(~occupied)
+    spacing = max(block / 2.0, float((hi - lo).max() + 8 * block) / max_cells)
+    origin = lo - 3 * block
+    shape = np.ceil((hi - lo + 6 * block) / spacing).astype(int) + 1
+    hit = np.zeros(shape, bool)
+    ijk = np.clip(np.round((points_unit - origin) / spacing).astype(int), 0, shape - 1)
+    hit[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = True
+    # distance from each voxel centre to the nearest voxel holding a point (+ half a voxel of slack)
+    blocked = ndimage.distance_transform_edt(~hit) * spacing <= block + 0.5 * spacing
+    labels, _ = ndimage.label(~blocked)
     border = np.unique(np.concatenate([labels[[0, -1]].ravel(), labels[:, [0, -1]].ravel(), labels[:, :, [0, -1]].ravel()]))
     outside = np.isin(labels, border[border > 0])
-    return outside, occupied, spacing, origin
+    return outside, blocked, spacing, origin - 0.5 * spacing
 
 
 def oriented_normals(points_unit: np.ndarray, outside: np.ndarray, spacing: float, origin: np.ndarray, k: int = 16) -> np.ndarray:
@@ -233,8 +244,8 @@ def space_labels(points_unit: np.ndarray, rng: np.random.Generator, n_free: int 
     """Free-space points (half near the surface, within 4 voxels of the dilated input, half anywhere
     outside) and near-surface inside/outside pairs at +-offset along the oriented normals, with
     offset = offset_fraction x the flood-fill spacing (a length derived from the sampling density)."""
-    outside, occupied, spacing, origin = outside_mask(points_unit)
-    near = outside & ndimage.binary_dilation(occupied, iterations=4)
+    outside, blocked, spacing, origin = outside_mask(points_unit)
+    near = outside & ndimage.binary_dilation(blocked, iterations=8)
     pools = []
     for mask, n in ((near, n_free // 2), (outside, n_free - n_free // 2)):
         cells = np.argwhere(mask)
@@ -243,8 +254,9 @@ def space_labels(points_unit: np.ndarray, rng: np.random.Generator, n_free: int 
             pools.append(origin + (pick + rng.random((n, 3))) * spacing)
     free = np.concatenate(pools).astype(np.float32) if pools else np.zeros((0, 3), np.float32)
     normals = oriented_normals(points_unit, outside, spacing, origin)
-    offset = offset_fraction * spacing
-    return SpaceLabels(free, (points_unit - offset * normals).astype(np.float32),
+    offset = offset_fraction * 2 * spacing  # in units of the blocking radius (2 voxels)
+    free_distance = cKDTree(points_unit).query(free, k=1, workers=-1)[0].astype(np.float32) if len(free) else np.zeros(0, np.float32)
+    return SpaceLabels(free, free_distance, (points_unit - offset * normals).astype(np.float32),
                        (points_unit + offset * normals).astype(np.float32), spacing, offset)
 
 
@@ -310,6 +322,9 @@ class SparseOcc(Method):
         pts_t = torch.from_numpy(pts.astype(np.float32)).to(device)
         labels = space_labels(pts, rng, offset_fraction=cfg.near_surface_offset) if (cfg.free_space_weight > 0 or cfg.near_surface_weight > 0) else None
         free = torch.from_numpy(labels.free).to(device) if labels is not None and cfg.free_space_weight > 0 else None
+        # hinge margins: half the distance to the data (free space, capped) and half the normal offset
+        free_margin = torch.from_numpy(np.minimum(0.5 * labels.free_distance, 0.5)).to(device) if free is not None else None
+        near_margin = 0.5 * labels.offset if labels is not None else 0.0
         near = (torch.from_numpy(np.concatenate([labels.near_in, labels.near_out])).to(device)
                 if labels is not None and cfg.near_surface_weight > 0 else None)
         lo = torch.from_numpy(pts.min(0).astype(np.float32)).to(device) - 0.05
@@ -337,7 +352,7 @@ class SparseOcc(Method):
                 check_cancel(should_cancel)
             for g in groups:
                 g["lr"] = warmup_cosine_lr(it, cfg.iterations, g["base_lr"], cfg.warmup, cfg.final_lr_ratio)
-            loss = self._step_loss(module, it, q_all, target_all, pts_t, free, near, lo, hi, fd_step, gen)
+            loss = self._step_loss(module, it, q_all, target_all, pts_t, (free, free_margin), (near, near_margin), lo, hi, fd_step, gen)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
@@ -354,11 +369,12 @@ class SparseOcc(Method):
         fitted.level = float(np.median(fitted.evaluate(pts.astype(np.float32))["U"]))
         return fitted
 
-    def _step_loss(self, module, it, q_all, target_all, pts_t, free, near, lo, hi, fd_step, gen) -> torch.Tensor:
+    def _step_loss(self, module, it, q_all, target_all, pts_t, free_and_margin, near_and_margin, lo, hi, fd_step, gen) -> torch.Tensor:
         """Total loss of one iteration. All points of the iteration go through the network in ONE
         forward pass (on a CPU the per-call overhead dominates small batches), then each term takes
         its slice: pull queries (+ finite-difference probes), entropy points, free space, near surface."""
         cfg: SparseOccConfig = self.config
+        (free, free_margin), (near, near_margin) = free_and_margin, near_and_margin
         device = q_all.device
         idx = torch.randint(0, len(q_all), (cfg.batch_size,), device=device, generator=gen)
         q, target = q_all[idx], target_all[idx]
@@ -377,7 +393,8 @@ class SparseOcc(Method):
             parts["uniform"] = lo + (hi - lo) * torch.rand((cfg.entropy_uniform_points, 3), device=device, generator=gen)
             parts["on_input"] = pts_t[torch.randint(0, len(pts_t), (cfg.entropy_input_points,), device=device, generator=gen)]
         if free is not None and len(free):
-            parts["free"] = free[torch.randint(0, len(free), (cfg.free_space_points,), device=device, generator=gen)]
+            fidx = torch.randint(0, len(free), (cfg.free_space_points,), device=device, generator=gen)
+            parts["free"] = free[fidx]
         if near is not None:
             nidx = torch.randint(0, len(near), (cfg.near_surface_points,), device=device, generator=gen)
             parts["near"] = near[nidx]
@@ -389,10 +406,12 @@ class SparseOcc(Method):
         if use_entropy:
             loss = loss + w_entropy * minimax_entropy_loss(logits["uniform"], logits["on_input"], cfg.lambda_min, cfg.lambda_max)
         if "free" in logits:
-            loss = loss + cfg.free_space_weight * free_space_loss(logits["free"])
+            u_free = margin_uncertainty(logits["free"])
+            loss = loss + cfg.free_space_weight * sign_margin_loss(u_free, torch.zeros_like(u_free, dtype=torch.bool), free_margin[fidx])
         if "near" in logits:
             inside = nidx < len(near) // 2  # the first half of `near` are the inside points
-            loss = loss + cfg.near_surface_weight * occupancy_label_loss(logits["near"], inside)
+            u_near = margin_uncertainty(logits["near"])
+            loss = loss + cfg.near_surface_weight * sign_margin_loss(u_near, inside, torch.full_like(u_near, near_margin))
         return loss
 
     def _queries(self, pts: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
