@@ -35,7 +35,7 @@ test-service: install
 	@$(PY) -m pytest tests/test_service_*.py
 
 sample: install
-	@$(PY) -c "from ribpull_core.phantom import write_phantom; p = write_phantom('var/samples'); print('wrote', p['points.ply'])"
+	@$(PY) -c "from ribpull_core.phantom import write_phantom; p = write_phantom('var/samples'); print('wrote', p['points'])"
 
 openapi: install
 	@$(PY) scripts/export_openapi.py openapi/openapi.json

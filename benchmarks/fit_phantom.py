@@ -25,7 +25,7 @@ def phantom_case(args, workdir: Path):
 
     cfg = PhantomConfig(seed=args.seed, n_points=args.points, noise_mm=args.noise)
     files = write_phantom(workdir / "phantom", cfg)
-    return files["points.ply"], cfg
+    return files["points"], cfg
 
 
 def main() -> None:

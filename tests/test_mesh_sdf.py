@@ -239,3 +239,19 @@ def test_sdf_volume_can_be_canceled(sphere_mesh):
     with pytest.raises(JobCanceled):
         signed_distance_volume(sphere_mesh, sphere_field(), FRAME, shape, affine, n_samples=10_000,
                                should_cancel=lambda: True)
+
+
+def test_clean_up_drops_cavities_and_unsupported_specks_but_keeps_supported_parts():
+    from ribpull_core.mesh import remove_unsupported_components
+
+    main = trimesh.creation.icosphere(subdivisions=4, radius=20.0)
+    cavity = trimesh.creation.icosphere(subdivisions=2, radius=5.0)
+    cavity.invert()  # an inward-facing shell inside the solid
+    speck = trimesh.creation.icosphere(subdivisions=2, radius=2.0).apply_translation([80.0, 0, 0])
+    second = trimesh.creation.icosphere(subdivisions=3, radius=8.0).apply_translation([0, 60.0, 0])
+    mesh = trimesh.util.concatenate([main, cavity, speck, second])
+    points = np.concatenate([main.sample(3000, seed=0), second.sample(800, seed=1)])
+    cleaned, info = remove_unsupported_components(mesh, points, support_mm=2.0)
+    assert info == {"components_before": 4, "removed_cavities": 1, "removed_unsupported": 1}
+    assert len(cleaned.split(only_watertight=False)) == 2
+    assert np.isclose(cleaned.area, main.area + second.area)
