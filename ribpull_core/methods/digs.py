@@ -8,9 +8,9 @@ geometric init) fitted to unoriented points with
 
 w_div = 1e2 until 20 % of training, linearly to 0 at 40 %, then 0. Each iteration draws 15k input
 points ("on") and 15k uniform points in [-1.1, 1.1]^3 ("off"); the eikonal term uses the gradients
-at both. Adam 5e-5 (constant), gradient norm clipped at 10, 10k iterations. Loss terms live in
-`ribpull_core.losses` (digs_manifold_loss, digs_off_surface_loss, eikonal_l1_loss, divergence_loss,
-divergence_weight).
+at both. Adam 5e-5 (constant), gradient norm clipped at 10, 10k iterations. The loss terms are the
+named functions below (digs_manifold_loss, digs_off_surface_loss, eikonal_l1_loss, divergence_loss,
+divergence_weight), with the autograd helpers spatial_gradient and laplacian.
 
 Sign: the geometric SIREN init is an approximate sphere SDF that is negative near the origin and
 positive far away (see `fields/siren.py`), i.e. already RibPull's "f < 0 inside" convention; nothing
@@ -21,22 +21,78 @@ When w_div is 0 (the last 60 % of the schedule) the second derivatives are not c
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
 
 from ..fields.siren import SirenMLP
-from ..losses import (
-    digs_manifold_loss,
-    digs_off_surface_loss,
-    divergence_loss,
-    divergence_weight,
-    eikonal_l1_loss,
-    laplacian,
-    spatial_gradient,
-)
 from .base import CancelFn, FittedField, Method, ProgressFn, ProgressThrottle, check_cancel, seed_everything
+
+# --- DiGS loss terms (public code Chumbyte/DiGS, models/losses.py; unit frame) --------------------
+
+def spatial_gradient(values: torch.Tensor, points: torch.Tensor, create_graph: bool = True) -> torch.Tensor:
+    """grad_x f at each point by autograd. values (B,) or (B, 1) computed from points (B, 3) that
+    require grad -> (B, 3). create_graph=True keeps it differentiable (needed by every loss on it)."""
+    (g,) = torch.autograd.grad(values.sum(), points, create_graph=create_graph)
+    return g
+
+
+def laplacian(grad: torch.Tensor, points: torch.Tensor, create_graph: bool = True) -> torch.Tensor:
+    """Divergence of the gradient field, div(grad f) = sum_i d^2 f / dx_i^2 (DiGS's "divergence").
+
+    grad (B, 3) = `spatial_gradient(f, points)` with create_graph=True; points (B, 3) -> (B,).
+    The three vector-Jacobian products (one per axis, as in the DiGS code) run as one batched
+    backward pass (~15 % faster on CPU than a loop); NaNs are set to 0 as in the DiGS code."""
+    if not grad.requires_grad:  # the gradient does not depend on the points (affine field)
+        return torch.zeros(grad.shape[0], dtype=grad.dtype, device=grad.device)
+    d = grad.shape[-1]
+    basis = torch.eye(d, dtype=grad.dtype, device=grad.device)[:, None, :].expand(d, *grad.shape)
+    (h,) = torch.autograd.grad(
+        grad, points, grad_outputs=basis, is_grads_batched=True, create_graph=create_graph, materialize_grads=True
+    )  # h[i] = d grad_i / d points, (d, B, d)
+    div = torch.diagonal(h, dim1=0, dim2=2).sum(-1)
+    return torch.nan_to_num(div, nan=0.0)
+
+
+def digs_manifold_loss(f_surface: torch.Tensor) -> torch.Tensor:
+    """DiGS/SIREN "sdf term": mean |f(p)| over input (on-surface) points. (B,) -> scalar; weight 3e3."""
+    return f_surface.abs().mean()
+
+
+def digs_off_surface_loss(f_off: torch.Tensor, alpha: float = 100.0) -> torch.Tensor:
+    """DiGS/SIREN "inter term": mean exp(-alpha |f(x)|) over off-surface points, which keeps the zero
+    set away from free space. (B,) -> scalar; alpha = 100, weight 1e2."""
+    return torch.exp(-alpha * f_off.abs()).mean()
+
+
+def eikonal_l1_loss(grad: torch.Tensor) -> torch.Tensor:
+    """DiGS's eikonal term ("abs" type): mean | ||grad f|| - 1 | over all points given (DiGS uses the
+    on- and off-surface gradients together). (B, 3) -> scalar; weight 5e1."""
+    return (grad.norm(dim=-1) - 1.0).abs().mean()
+
+
+def divergence_loss(div: torch.Tensor, clamp_min: float = 0.1, clamp_max: float = 50.0) -> torch.Tensor:
+    """DiGS's divergence term ("l1" type): mean clamp(|div grad f|, 0.1, 50) at off-surface points.
+
+    div (B,) = `laplacian(...)` -> scalar. Inside the clamp range it pushes the field towards zero
+    divergence (smooth, low-curvature level sets); outside it has no gradient."""
+    return torch.clamp(div.abs(), clamp_min, clamp_max).mean()
+
+
+def divergence_weight(
+    iteration: int, total: int, w0: float = 1e2, hold_until: float = 0.2, zero_from: float = 0.4
+) -> float:
+    """DiGS's annealing of the divergence weight ("linear" decay, params 1e2 0.2 1e2 0.4 0 0):
+    w0 until hold_until*total, linear to 0 at zero_from*total, then 0."""
+    t = iteration / max(1, total)
+    if t < hold_until:
+        return w0
+    if t >= zero_from:
+        return 0.0
+    return w0 * (1.0 - (t - hold_until) / (zero_from - hold_until))
 
 
 @dataclass
@@ -100,7 +156,7 @@ class DiGS(Method):
 
     name = "digs"
     config_class = DiGSConfig
-    presets = {"paper": _paper, "default": _default, "smoke": _smoke}
+    presets: ClassVar[dict[str, Callable[[], Any]]] = {"paper": _paper, "default": _default, "smoke": _smoke}
 
     def __init__(self, config: DiGSConfig | None = None):
         super().__init__(config if config is not None else _default())

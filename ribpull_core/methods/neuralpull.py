@@ -12,13 +12,15 @@ inside score is -f, so the convention "f < 0 inside" comes from the geometric in
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
 
 from ..fields.mlp import NeuralPullMLP
-from ..losses import neural_pull_loss, pull_to_surface, spatial_gradient
+from ..losses import pull_to_surface, sampling_loss
 from .base import (
     CancelFn,
     FittedField,
@@ -30,6 +32,19 @@ from .base import (
     seed_everything,
     warmup_cosine_lr,
 )
+
+
+def neural_pull_loss(pulled: torch.Tensor, nearest_input: torch.Tensor) -> torch.Tensor:
+    """Neural-Pull's loss as coded (NeuralPull-Pytorch): mean ||q' - p_nn(q)||_2 (plain L2 norm, not
+    squared as in the paper's text; weight 1). pulled = `pull_to_surface(q, f(q), grad f(q))`,
+    nearest_input = the input point nearest to q. (B, 3), (B, 3) -> scalar."""
+    return sampling_loss(pulled, nearest_input, weight=1.0)
+
+
+def sdf_gradient(f: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
+    """grad_q f (B, 3) by autograd, kept differentiable (the pull is trained through it)."""
+    (g,) = torch.autograd.grad(f.sum(), q, create_graph=True)
+    return g
 
 
 @dataclass
@@ -83,7 +98,7 @@ class NeuralPull(Method):
 
     name = "neuralpull"
     config_class = NeuralPullConfig
-    presets = {"paper": _paper, "default": _default, "smoke": _smoke}
+    presets: ClassVar[dict[str, Callable[[], Any]]] = {"paper": _paper, "default": _default, "smoke": _smoke}
 
     def __init__(self, config: NeuralPullConfig | None = None):
         super().__init__(config if config is not None else _default())
@@ -143,7 +158,7 @@ class NeuralPull(Method):
             idx = torch.from_numpy(rng.integers(0, n_q, size=batch)).to(device)
             q = queries_t[idx].requires_grad_(True)
             f = net(q).reshape(-1)
-            grad = spatial_gradient(f, q, create_graph=True)
+            grad = sdf_gradient(f, q)
             pulled = pull_to_surface(q, f, grad)
             loss = neural_pull_loss(pulled, targets_t[idx])
             opt.zero_grad(set_to_none=True)
