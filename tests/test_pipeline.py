@@ -137,7 +137,7 @@ def test_real_totalsegmentator_map_is_reconstructed_on_the_mask(tmp_path):
 def test_cli_fit_and_phantom(tmp_path, capsys):
     assert cli_main(["phantom", str(tmp_path / "ph"), "--points", "8000", "--missing", *FOUR_RIBS]) == 0
     rc = cli_main(["fit", str(tmp_path / "ph" / "points.ply"), "-o", str(tmp_path / "fit"), "--preset", "smoke",
-                   "--iterations", "30", "--no-skeleton", "--no-preview", "-q"])
+                   "--iterations", "150", "--no-skeleton", "--no-preview", "-q"])
     assert rc == 0 and (tmp_path / "fit" / "mesh.glb").exists()
     assert "CD-L1" in capsys.readouterr().out
     (tmp_path / "bad.ply").write_text("ply\nformat ascii 1.0\nelement vertex 500\nproperty float x\nproperty float y\n"

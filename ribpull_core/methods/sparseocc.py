@@ -16,6 +16,7 @@ them to their nearest input point. Paper eq. 2: minimax entropy regulariser. Pre
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import asdict, dataclass, field
@@ -146,30 +147,15 @@ def default_config() -> SparseOccConfig:
 
 
 def smoke_config() -> SparseOccConfig:
-    """Seconds on a CPU; enough for a coarse surface of a small phantom (tests)."""
-    return SparseOccConfig(
-        iterations=120,
-        batch_size=2048,
-        network="grid",
-        grid_levels=8,
-        grid_log2_table=16,
-        grid_max_resolution=128,
-        grid_hidden=32,
-        lr=3e-3,
-        grid_lr=3e-2,
-        warmup=10,
+    """A short `default` (tens of seconds on a CPU): coarse but correct surfaces, for tests and CI."""
+    return dataclasses.replace(
+        default_config(),
+        iterations=250,
+        batch_size=1024,
         n_queries=100_000,
-        query_scales=(0.5, 1.0, 2.0),
-        query_jitter=(0.0, 0.0),
-        gradient="finite_difference",
-        entropy_input_points=500,
-        entropy_uniform_points=500,
-        lambda_max=1.0,
-        n_minimax=50,
-        free_space_weight=10.0,
-        free_space_points=2048,
-        near_surface_weight=10.0,
+        free_space_points=1024,
         near_surface_points=2048,
+        early_stop_window=0,
     )
 
 
