@@ -29,7 +29,11 @@ from ribpull_core.methods.digs import (
 from ribpull_core.methods.neuralpull import NeuralPull, NeuralPullConfig, neural_pull_loss
 
 CENTRE = np.array([0.05, -0.05, 0.0])
-RADIUS = 0.4  # not an init sphere (Neural-Pull r=1.0, DiGS's irregular ~0.6-1.4), so the fit must move it
+# Not an init sphere (Neural-Pull r=1.0, DiGS's irregular ~0.6-1.4), so the fit must move the surface.
+# Centred near the origin like RibPull's unit frame: DiGS's sign comes from its init sphere around the
+# origin, and with sphere_scale 0.1 its f hardly goes below -0.16 (sqrt reshaping), so deep interiors
+# (radius >~ 0.35) of a smoke-length fit are not reliably negative.
+RADIUS = 0.3
 
 
 @pytest.fixture(autouse=True, scope="module")
@@ -142,12 +146,6 @@ def test_siren_layer_shapes_and_plain_init():
 
 # --- end-to-end smoke fits -------------------------------------------------------------------
 
-METHODS = [
-    pytest.param(NeuralPull, {}, id="neuralpull"),
-    pytest.param(DiGS, {}, id="digs"),
-]
-
-
 def _fit(cls, **overrides) -> tuple[FittedField, list[FitProgress], float]:
     cfg = dataclasses.replace(cls.presets["smoke"](), **overrides)
     reports: list[FitProgress] = []
@@ -176,20 +174,20 @@ def test_smoke_fit_returns_sdf_field_with_correct_inside(smoke_fit):
     assert score[0] > field.level
     assert score[1] < field.level and score[2] < field.level
     # the surface moved from the initial sphere onto the input: |f| at the input points is small
-    # (at the init it is ~0.6 for Neural-Pull's radius-1.0 sphere)
-    assert mean_abs_f < 0.03, mean_abs_f
+    # (at the init it is ~0.7 for Neural-Pull's radius-1.0 sphere)
+    assert mean_abs_f < 0.02, mean_abs_f
     # classification of a sample of the cube against the true sphere
     g = np.random.default_rng(0).uniform(-1, 1, (20000, 3)).astype(np.float32)
     inside_true = np.linalg.norm(g - CENTRE, axis=1) < RADIUS
     inside_pred = field.evaluate(g)["inside_score"] > field.level
-    assert (inside_true == inside_pred).mean() > 0.97
+    assert (inside_true == inside_pred).mean() > 0.98
 
 
 def test_smoke_fit_loss_decreases_and_progress_reported(smoke_fit):
     _, field, reports, _ = smoke_fit
     h = field.loss_history
     assert len(h) >= 10 and all(np.isfinite(h))
-    assert np.mean(h[-3:]) < 0.5 * np.mean(h[:3])
+    assert np.mean(h[-3:]) < 0.2 * np.mean(h[:3])
     assert reports and reports[-1].iteration == reports[-1].iterations == field.iterations_run
     assert all(r.iterations == field.iterations_run for r in reports)
 
