@@ -7,7 +7,6 @@ Bad input prints one line saying what to fix and exits with status 2; a cancel (
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 

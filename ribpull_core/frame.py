@@ -24,7 +24,7 @@ class UnitFrame:
     half_extent_mm: float
 
     @classmethod
-    def fit(cls, points_mm: np.ndarray) -> "UnitFrame":
+    def fit(cls, points_mm: np.ndarray) -> UnitFrame:
         lo, hi = points_mm.min(axis=0), points_mm.max(axis=0)
         half = float((hi - lo).max()) / 2.0
         if not np.isfinite(half) or half <= 0:
@@ -48,5 +48,5 @@ class UnitFrame:
         return {"center_mm": list(self.center_mm), "half_extent_mm": self.half_extent_mm}
 
     @classmethod
-    def from_dict(cls, d: dict) -> "UnitFrame":
+    def from_dict(cls, d: dict) -> UnitFrame:
         return cls(tuple(float(c) for c in d["center_mm"]), float(d["half_extent_mm"]))

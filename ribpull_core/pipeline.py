@@ -8,9 +8,9 @@ cancellation check returns True. Bad input raises `RibPullInputError`; nothing i
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 #: artifact file names the pipeline can produce (the service serves exactly these)
 ARTIFACT_NAMES = (
@@ -74,17 +74,17 @@ CancelCheck = Callable[[], bool]
 
 # --- implementation ----------------------------------------------------------------------------
 
-import json  # noqa: E402  (kept below the public contract above for readability)
-import os  # noqa: E402
-import shutil  # noqa: E402
-import tempfile  # noqa: E402
-import time  # noqa: E402
-from dataclasses import replace  # noqa: E402
+import json
+import os
+import shutil
+import tempfile
+import time
+from dataclasses import replace
 
-import numpy as np  # noqa: E402
+import numpy as np
 
-from .errors import JobCanceled, RibPullInputError  # noqa: E402
-from .frame import UnitFrame  # noqa: E402
+from .errors import JobCanceled, RibPullInputError
+from .frame import UnitFrame
 
 #: where each stage's progress lives in the overall [0, 1] fraction
 STAGE_SPANS = {

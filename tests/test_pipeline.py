@@ -66,7 +66,7 @@ def test_pipeline_metrics_and_weights(fitted):
     assert s["cd_l1_paper"] == pytest.approx(s["cd_l1_mm"] * 100 / m["frame"]["half_extent_mm"], rel=1e-6)
     assert m["weights"]["weights_bytes_fp16"] * 2 == m["weights"]["weights_bytes_fp32"]
     # loading the weights reproduces the field exactly
-    field, frame, meta = load_field(result.outdir)
+    field, _frame, meta = load_field(result.outdir)
     assert meta["frame"] == m["frame"] and field.level == pytest.approx(m["surface_level"])
 
 
@@ -123,8 +123,9 @@ def test_real_totalsegmentator_map_is_reconstructed_on_the_mask(tmp_path):
     sdf, seg = nib.load(result.outdir / "sdf.nii.gz"), nib.load(TOTALSEG)
     assert sdf.shape == seg.shape and np.allclose(sdf.affine, seg.affine)
     # the surface lies on the mask (3 mm voxels): mesh samples are near the selected voxel centres
-    from ribpull_core.io import load_point_cloud
     from scipy.spatial import cKDTree
+
+    from ribpull_core.io import load_point_cloud
 
     cloud = load_point_cloud(TOTALSEG)
     mesh = trimesh.load(result.outdir / "mesh.ply", force="mesh")

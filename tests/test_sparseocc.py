@@ -4,6 +4,7 @@ and short fits (the `paper` preset as a smoke, the `smoke` preset on a small pha
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 
 import numpy as np
@@ -68,7 +69,7 @@ def test_margin_uncertainty_and_entropy_values():
 def test_learning_rate_warmup_then_cosine():
     lrs = [warmup_cosine_lr(i, 100, 1.0, 10) for i in range(100)]
     assert lrs[0] == pytest.approx(0.1) and lrs[9] == pytest.approx(1.0)
-    assert all(a >= b for a, b in zip(lrs[10:], lrs[11:])) and lrs[-1] < 0.01
+    assert all(a >= b for a, b in itertools.pairwise(lrs[10:])) and lrs[-1] < 0.01
 
 
 def test_query_sampling_follows_neural_pull():

@@ -31,4 +31,4 @@ def build_module(arch: dict[str, Any]) -> nn.Module:
     return cls(**arch.get("kwargs", {}))
 
 
-__all__ = ["NeuralPullMLP", "build_module", "FIELD_CLASSES"]
+__all__ = ["FIELD_CLASSES", "NeuralPullMLP", "build_module"]

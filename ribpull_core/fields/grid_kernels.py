@@ -68,7 +68,7 @@ class HashGridEncode(torch.autograd.Function):
     """features = encode(x; table) with a gradient for `table` only (CPU, float32)."""
 
     @staticmethod
-    def forward(ctx, x, table, res, sizes, offsets, dense, domain):  # noqa: D401
+    def forward(ctx, x, table, res, sizes, offsets, dense, domain):
         xn = x.detach().contiguous().numpy().astype(np.float32, copy=False)
         tn = table.detach().contiguous().numpy()
         n, n_levels, n_feat = xn.shape[0], res.shape[0], tn.shape[1]

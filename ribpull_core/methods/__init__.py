@@ -63,4 +63,4 @@ def build_fit_config(
     return FitConfig(preset=preset, method=method, method_config=method_config, mesh=mesh, seed=seed)
 
 
-__all__ = ["METHOD_CLASSES", "RUN_PRESETS", "get_method_class", "build_fit_config", "Method"]
+__all__ = ["METHOD_CLASSES", "RUN_PRESETS", "Method", "build_fit_config", "get_method_class"]

@@ -19,7 +19,8 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
+from typing import ClassVar
 
 import numpy as np
 import torch
@@ -28,12 +29,12 @@ from scipy.spatial import cKDTree
 
 from ..fields import build_module
 from ..losses import (
-    sign_margin_loss,
     margin_uncertainty,
     minimax_entropy_loss,
     minimax_weight,
     pull_to_surface,
     sampling_loss,
+    sign_margin_loss,
 )
 from .base import (
     CancelFn,
@@ -291,7 +292,7 @@ class SparseOcc(Method):
 
     name = "sparseocc"
     config_class = SparseOccConfig
-    presets = {"paper": paper_config, "default": default_config, "smoke": smoke_config}
+    presets: ClassVar[dict] = {"paper": paper_config, "default": default_config, "smoke": smoke_config}
 
     def fit(self, points_unit: np.ndarray, device: torch.device, progress: ProgressFn | None = None,
             should_cancel: CancelFn | None = None) -> FittedField:

@@ -11,8 +11,6 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 
-from typing import Callable
-
 import numpy as np
 import trimesh
 from scipy.spatial import cKDTree

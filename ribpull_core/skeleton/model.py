@@ -178,7 +178,7 @@ class Skeleton:
         }
 
     @classmethod
-    def from_json(cls, d: dict) -> "Skeleton":
+    def from_json(cls, d: dict) -> Skeleton:
         """Inverse of `to_json` (nodes rounded to 1e-4 mm), e.g. to score a saved skeleton.json."""
         if d.get("units", "mm") != "mm":
             raise ValueError(f"skeleton units {d.get('units')!r}; expected 'mm'")
