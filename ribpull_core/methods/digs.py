@@ -15,6 +15,10 @@ divergence_weight), with the autograd helpers spatial_gradient and laplacian.
 Sign: the geometric SIREN init is an approximate sphere SDF that is negative near the origin and
 positive far away (see `fields/siren.py`), i.e. already RibPull's "f < 0 inside" convention; nothing
 in the loss is sign dependent, so the trained f is used as is (inside score = -f, level 0).
+Consequences seen in tests: the input must be roughly centred on the origin (RibPull's unit frame
+centres the bounding box; an off-centre sphere can come out inverted), and with sphere_scale 0.1 the
+field hardly goes below -0.16 (reaching lower needs the pre-sqrt output to cross 0, where the
+reshaping is singular), so deep interiors of thick shapes are weakly negative; thin ribs are fine.
 When w_div is 0 (the last 60 % of the schedule) the second derivatives are not computed at all.
 """
 
