@@ -54,17 +54,27 @@ POISSON_DEPTH = 8  # octree depth of screened Poisson (2^8 cells over ~1.1x the 
 #                    depth 9 measured no better on the 20k-point phantom and ~1.7x slower)
 MASK_SPACING_MM = 1.0  # voxel size of the voxelised phantom masks
 FULL_SEEDS = (0, 1, 2)
-#: (n_points, noise_mm) of the phantom point clouds in the full run: a noise sweep at 20k points and
-#: a point-count sweep at 0.3 mm noise
-FULL_POINT_CASES = ((20_000, 0.0), (20_000, 0.3), (20_000, 1.0), (5_000, 0.3), (100_000, 0.3))
+#: (n_points, noise_mm) of the main phantom point-cloud case (every method, every seed)
+MAIN_POINT_CASE = (20_000, 0.3)
+#: the sweep around it: noise 0 / 1 mm at 20k points, 5k / 100k points at 0.3 mm
+SWEEP_POINT_CASES = ((20_000, 0.0), (20_000, 1.0), (5_000, 0.3), (100_000, 0.3))
+#: the docs run (`--plan docs`, what docs/benchmarks.md shows): the expensive neural methods on the
+#: first DOCS_EXPENSIVE_SEEDS seeds only, and SparseOcc's `paper` preset cut to DOCS_PAPER_ITERATIONS
+#: of its 20k (its full schedule is ~2 h per case on the 2-core CPU)
+DOCS_EXPENSIVE_SEEDS = 2
+DOCS_PAPER_ITERATIONS = 2_000
+PLANS = ("quick", "docs", "full")
 POINT_SUFFIXES = (".ply", ".xyz", ".txt", ".csv", ".npy", ".npz", ".pcd")
 MASK_SUFFIXES = (".nii", ".nii.gz")
 
 GROUP_POINTS = "phantom point clouds"
+GROUP_SWEEP = "phantom sweeps (noise, point count)"
 GROUP_MASK = "phantom voxel masks"
 GROUP_REAL = "real label map"
 GROUP_USER = "user files"
-GROUP_ORDER = (GROUP_POINTS, GROUP_MASK, GROUP_REAL, GROUP_USER)
+GROUP_ORDER = (GROUP_POINTS, GROUP_SWEEP, GROUP_MASK, GROUP_REAL, GROUP_USER)
+#: groups whose table has one line per (method, case) instead of pooling the cases
+GROUPS_BY_CASE = (GROUP_SWEEP,)
 
 #: per-stage columns (seconds and peak resident MB); which stages a row has depends on the method
 STAGES = ("load", "normals", "fit", "mesh", "sdf", "skeleton", "metrics", "export", "score")
@@ -143,11 +153,30 @@ def quick_methods() -> list[MethodSpec]:
     ]
 
 
+def docs_methods() -> tuple[list[MethodSpec], list[MethodSpec]]:
+    """--plan docs: (cheap, expensive). Cheap: SparseOcc default, screened Poisson, mask marching
+    cubes, run on every case. Expensive: SparseOcc `paper` cut to DOCS_PAPER_ITERATIONS, Neural-Pull
+    and DiGS at their `default` presets, run on the main case of the first DOCS_EXPENSIVE_SEEDS seeds."""
+    cheap = [MethodSpec("sparseocc default", "pipeline", preset="default"),
+             MethodSpec("screened poisson", "poisson", inputs=("points",)),
+             MethodSpec("mask marching cubes", "mask_mc", inputs=("mask",))]
+    expensive = [
+        MethodSpec(f"sparseocc paper {DOCS_PAPER_ITERATIONS // 1000}k it", "pipeline", preset="paper",
+                   iterations=DOCS_PAPER_ITERATIONS, inputs=("points",)),
+        MethodSpec("neuralpull default", "pipeline", preset="default", method="neuralpull",
+                   resolution=BASELINE_RESOLUTION, inputs=("points",)),
+        MethodSpec("digs default", "pipeline", preset="default", method="digs", resolution=BASELINE_RESOLUTION,
+                   inputs=("points",)),
+    ]
+    return cheap, expensive
+
+
 def full_methods() -> list[MethodSpec]:
-    """The full run: every method at its `default` preset (SparseOcc `paper` only in the speed section:
-    its 20k iterations take ~2.5 h per case on a 2-core CPU)."""
+    """The full run (hours: meant for a GPU or a night): every method at its `default` preset and
+    SparseOcc's `paper` preset at its full 20k-iteration schedule (~2 h per case on a 2-core CPU)."""
     return [
         MethodSpec("sparseocc default", "pipeline", preset="default"),
+        MethodSpec("sparseocc paper", "pipeline", preset="paper", inputs=("points",)),
         MethodSpec("neuralpull default", "pipeline", preset="default", method="neuralpull",
                    resolution=BASELINE_RESOLUTION),
         MethodSpec("digs default", "pipeline", preset="default", method="digs", resolution=BASELINE_RESOLUTION),
@@ -156,16 +185,18 @@ def full_methods() -> list[MethodSpec]:
     ]
 
 
-def phantom_case(workdir: Path, seed: int, n_points: int, noise_mm: float, mask: bool = False) -> Case:
+def phantom_case(workdir: Path, seed: int, n_points: int, noise_mm: float, mask: bool = False,
+                 group: str | None = None) -> Case:
     """Write a synthetic ribcage (phantom.write_phantom) under workdir and return its case: the point
     cloud (n_points samples, noise_mm Gaussian noise) or, with mask, the label map voxelised at
-    MASK_SPACING_MM (noise-free; n_points is then only the size of the unused points.ply)."""
+    MASK_SPACING_MM (noise-free; n_points is then only the size of the unused points.ply). group:
+    the table it is reported in (default: GROUP_MASK for masks, else GROUP_POINTS)."""
     from .phantom import PhantomConfig, write_phantom
 
     name = f"phantom-s{seed}-mask{MASK_SPACING_MM:g}mm" if mask else f"phantom-s{seed}-n{n_points}-noise{noise_mm:g}"
     files = write_phantom(Path(workdir) / name, PhantomConfig(seed=seed, n_points=n_points, noise_mm=noise_mm),
                           nifti=mask, spacing_mm=MASK_SPACING_MM)
-    return Case(name=name, group=GROUP_MASK if mask else GROUP_POINTS,
+    return Case(name=name, group=group or (GROUP_MASK if mask else GROUP_POINTS),
                 input_path=str(files["mask"] if mask else files["points"]), input_kind="mask" if mask else "points",
                 seed=seed, noise_mm=None if mask else noise_mm, n_points=None if mask else n_points,
                 truth_mesh=str(files["truth_mesh"]), centerlines=str(files["centerlines"]))
@@ -208,50 +239,65 @@ def applicable(spec: MethodSpec, case: Case) -> bool:
     return case.input_kind in spec.inputs
 
 
-def build_plan(quick: bool, workdir: Path, seeds: tuple[int, ...], n_points: int | None = None,
+def build_plan(mode: str, workdir: Path, seeds: tuple[int, ...], n_points: int | None = None,
                cases_dir: Path | None = None, label_map: Path | None = REAL_LABEL_MAP,
                method_filter: list[str] | None = None, notes: list[str] | None = None) -> tuple[list, list[Case]]:
-    """(plan, cases): plan is the ordered list of (MethodSpec, Case) to run. Quick: one phantom point
-    cloud (seed 0, n_points or QUICK_POINTS, QUICK_NOISE_MM) with every point method, the seed-0 mask
-    with marching cubes, the real label map with SparseOcc default and marching cubes. Full: per seed
-    the FULL_POINT_CASES and a mask, the real label map, every applicable method on each. User cases
-    get every applicable method (quick: SparseOcc default and the classical ones). Skips go to notes."""
+    """(plan, cases): plan is the ordered list of (MethodSpec, Case) to run; mode is one of PLANS.
+
+    quick: one phantom point cloud (first seed, n_points or QUICK_POINTS, QUICK_NOISE_MM) with every
+    point method, the mask with marching cubes, the real label map with SparseOcc default and
+    marching cubes. docs: per seed the main phantom case (MAIN_POINT_CASE) with the cheap methods,
+    plus the expensive ones on the first DOCS_EXPENSIVE_SEEDS seeds; for the first seed the
+    SWEEP_POINT_CASES and the mask with the cheap methods; the real label map. full: per seed the main
+    case, the sweeps and the mask with every applicable method; the real label map per seed. User
+    cases (--cases) get SparseOcc default and the classical methods (full: every method). Skips go
+    to notes."""
+    if mode not in PLANS:
+        raise ValueError(f"unknown plan {mode!r}; choose one of {PLANS}")
     notes = notes if notes is not None else []
     workdir = Path(workdir)
-    methods = quick_methods() if quick else full_methods()
+    if mode == "docs":
+        cheap, expensive = docs_methods()
+    else:
+        cheap = quick_methods() if mode == "quick" else full_methods()
+        expensive = []
     if method_filter:
-        methods = [m for m in methods if any(m.label.startswith(f) or m.kind == f for f in method_filter)]
+        def wanted(m: MethodSpec) -> bool:
+            return any(m.label.startswith(f) or m.kind == f for f in method_filter)
+
+        cheap, expensive = [m for m in cheap if wanted(m)], [m for m in expensive if wanted(m)]
+    methods = cheap + expensive
+    light = [m for m in methods if m.label == "sparseocc default" or m.kind != "pipeline"]
     cases: list[Case] = []
     plan: list[tuple[MethodSpec, Case]] = []
-    quick_real = [m for m in methods if m.label == "sparseocc default" or m.kind != "pipeline"]
-    if quick:
-        pc = phantom_case(workdir, seeds[0], n_points or QUICK_POINTS, QUICK_NOISE_MM)
-        mc = phantom_case(workdir, seeds[0], 1_000, 0.0, mask=True)
-        cases += [pc, mc]
-        plan += [(m, pc) for m in methods if applicable(m, pc)]
-        plan += [(m, mc) for m in methods if m.kind == "mask_mc"]
+
+    def add(case: Case, specs: list[MethodSpec]) -> None:
+        cases.append(case)
+        plan.extend((m, case) for m in specs if applicable(m, case))
+
+    main_n, main_noise = MAIN_POINT_CASE
+    if mode == "quick":
+        add(phantom_case(workdir, seeds[0], n_points or QUICK_POINTS, QUICK_NOISE_MM), methods)
+        add(phantom_case(workdir, seeds[0], 1_000, 0.0, mask=True), [m for m in methods if m.kind == "mask_mc"])
     else:
-        for seed in seeds:
-            for n, noise in FULL_POINT_CASES:
-                c = phantom_case(workdir, seed, n, noise)
-                cases.append(c)
-                plan += [(m, c) for m in methods if applicable(m, c)]
-            c = phantom_case(workdir, seed, 1_000, 0.0, mask=True)
-            cases.append(c)
-            plan += [(m, c) for m in methods if applicable(m, c)]
+        for i, seed in enumerate(seeds):
+            main_specs = methods if mode == "full" or i < DOCS_EXPENSIVE_SEEDS else cheap
+            add(phantom_case(workdir, seed, n_points or main_n, main_noise), main_specs)
+            if mode == "full" or i == 0:
+                for n, noise in SWEEP_POINT_CASES:
+                    add(phantom_case(workdir, seed, n, noise, group=GROUP_SWEEP), cheap if mode == "docs" else methods)
+                add(phantom_case(workdir, seed, 1_000, 0.0, mask=True), cheap if mode == "docs" else methods)
+    extra_specs = methods if mode == "full" else light
     if label_map is not None:
         if Path(label_map).exists():
-            for seed in (seeds[:1] if quick else seeds):
-                c = Case(name=Path(label_map).name, group=GROUP_REAL, input_path=str(label_map), input_kind="mask",
-                         seed=seed)
-                cases.append(c)
-                plan += [(m, c) for m in (quick_real if quick else methods) if applicable(m, c)]
+            for seed in (seeds if mode == "full" else seeds[:1]):
+                add(Case(name=Path(label_map).name, group=GROUP_REAL, input_path=str(label_map), input_kind="mask",
+                         seed=seed), extra_specs)
         else:
             notes.append(f"real label map {label_map} not found: its rows are skipped")
     if cases_dir is not None:
-        for c in user_cases(Path(cases_dir), seeds[:1] if quick else seeds):
-            cases.append(c)
-            plan += [(m, c) for m in (quick_real if quick else methods) if applicable(m, c)]
+        for c in user_cases(Path(cases_dir), seeds if mode == "full" else seeds[:1]):
+            add(c, extra_specs)
     if not methods:
         notes.append(f"no method matches --methods {method_filter}")
     return plan, cases
@@ -843,21 +889,26 @@ ACCURACY_COLUMNS = (
 )
 
 
-def accuracy_table(rows: list[dict], group: str) -> list[str]:
-    """Markdown lines: one line per method of `group`, mean ± std over its successful rows (cases x
-    seeds), lengths in mm and in paper units, NC, F-score, time, peak memory; failures counted."""
+def accuracy_table(rows: list[dict], group: str, by_case: bool = False) -> list[str]:
+    """Markdown lines: one line per method of `group` (by_case: per case, then method), mean ± std
+    over its successful rows (cases x seeds), lengths in mm and in paper units, NC, F-score, time,
+    peak memory; failures counted."""
     sel = [r for r in rows if r.get("group") == group]
-    methods = list(dict.fromkeys(r["method"] for r in sel))
+
+    def key(r: dict) -> str:
+        return f"{r['case']}: {r['method']}" if by_case else r["method"]
+
+    keys = sorted(dict.fromkeys(map(key, sel))) if by_case else list(dict.fromkeys(map(key, sel)))
     ref = next((r.get("reference") for r in sel if r.get("reference")), "—")
     lines = [f"### Surface accuracy: {group} (reference: {ref})", "",
-             "| Method | n | " + " | ".join(h for h, _, _ in ACCURACY_COLUMNS) + " |",
+             f"| {'Case: method' if by_case else 'Method'} | n | " + " | ".join(h for h, _, _ in ACCURACY_COLUMNS) + " |",
              "|---|---:|" + "---:|" * len(ACCURACY_COLUMNS)]
-    for m in methods:
-        ok = [r for r in sel if r["method"] == m and r.get("status") == "ok"]
-        bad = [r for r in sel if r["method"] == m and r.get("status") != "ok"]
+    for k in keys:
+        ok = [r for r in sel if key(r) == k and r.get("status") == "ok"]
+        bad = [r for r in sel if key(r) == k and r.get("status") != "ok"]
         n = f"{len(ok)}" + (f" ({len(bad)} failed)" if bad else "")
         cells = [fmt([r.get(c) for r in ok]) for _, c, fmt in ACCURACY_COLUMNS]
-        lines.append(f"| {m} | {n} | " + " | ".join(cells) + " |")
+        lines.append(f"| {k} | {n} | " + " | ".join(cells) + " |")
     return lines
 
 
@@ -903,7 +954,7 @@ def write_markdown(path: Path, rows: list[dict], skeleton_rows: list[dict] | Non
             "(scoring excluded); peak RSS: the child process's ru_maxrss."), ""]
     for g in [*GROUP_ORDER, *sorted({r.get("group") for r in rows} - set(GROUP_ORDER) - {None})]:
         if any(r.get("group") == g for r in rows):
-            out += accuracy_table(rows, g) + [""]
+            out += accuracy_table(rows, g, by_case=g in GROUPS_BY_CASE) + [""]
     out += ["### For context: the paper's Table 1 (20 real RibSeg cases, paper units; not this run)", "",
             "| Method | CD-L1 | CD-L2 | HD |", "|---|---:|---:|---:|"]
     out += [f"| {m} | {a} | {b} | {c} |" for m, (a, b, c) in PAPER_TABLE1.items()] + [""]
@@ -1053,7 +1104,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The `ribpull bench` options."""
     parser.add_argument("-o", "--output", required=True, help="output directory (results.csv, results.md, PNGs, runs/)")
     parser.add_argument("--quick", action="store_true",
-                        help="<= 15 min on 2 cores: one phantom case, short baselines, mask + real map, skeletons, speed")
+                        help="<= 15 min on 2 cores: one phantom case, short baselines, mask + real map, skeletons, "
+                             "speed (same as --plan quick)")
+    parser.add_argument("--plan", choices=PLANS, default=None,
+                        help="quick (as --quick); docs: what docs/benchmarks.md shows (~1.5 h on 2 cores); "
+                             "full: every method on every case and seed, SparseOcc paper at 20k iterations "
+                             "(hours; default)")
     parser.add_argument("--cases", default=None, help="folder of extra inputs (point files, label maps, phantom folders)")
     parser.add_argument("--seeds", type=int, nargs="+", default=None, help=f"seeds (default {list(FULL_SEEDS)}; quick: 0)")
     parser.add_argument("--methods", nargs="+", default=None,
@@ -1110,16 +1166,19 @@ def main(args: argparse.Namespace) -> int:
     """`ribpull bench`: build the plan, run it, write the outputs, print results.md. 0 if any row succeeded."""
     outdir = Path(args.output)
     outdir.mkdir(parents=True, exist_ok=True)
-    seeds = tuple(args.seeds) if args.seeds else ((0,) if args.quick else FULL_SEEDS)
+    mode = "quick" if args.quick else (args.plan or "full")
+    if args.quick and args.plan not in (None, "quick"):
+        print(f"ribpull bench: --quick and --plan {args.plan} disagree; choose one", file=sys.stderr)
+        return 2
+    seeds = tuple(args.seeds) if args.seeds else ((0,) if mode == "quick" else FULL_SEEDS)
     notes: list[str] = []
-    plan, cases = build_plan(args.quick, outdir / "cases", seeds, args.points,
+    plan, cases = build_plan(mode, outdir / "cases", seeds, args.points,
                              Path(args.cases) if args.cases else None,
                              Path(args.label_map) if args.label_map else None, args.methods, notes)
     if importlib_missing("pymeshlab"):
         notes.append("screened Poisson skipped: pymeshlab is not installed (pip install 'ribpull[bench]')")
         plan = [(m, c) for m, c in plan if m.kind != "poisson"]
     truth_points = next((c for c in cases if c.group == GROUP_POINTS), None)
-    mode = "quick" if args.quick else "full"
     its = {m.label: (m.iterations or "preset schedule") for m, _ in plan if m.kind == "pipeline"}
     meta = {"command": "ribpull " + " ".join(sys.argv[1:]) if Path(sys.argv[0]).name == "ribpull" else f"ribpull bench ({mode})",
             "mode": mode, "seeds": list(seeds), "iterations": ", ".join(f"{k}: {v}" for k, v in its.items()) or "—",

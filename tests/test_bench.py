@@ -113,7 +113,7 @@ def test_plots_are_written_and_not_blank(tmp_path):
 
 def test_plan_quick_contents(tmp_path):
     notes: list[str] = []
-    plan, cases = bench.build_plan(True, tmp_path / "cases", (0,), n_points=2_000,
+    plan, cases = bench.build_plan("quick", tmp_path / "cases", (0,), n_points=2_000,
                                    label_map=tmp_path / "absent.nii.gz", notes=notes)
     pairs = {(m.label, c.group) for m, c in plan}
     assert ("sparseocc default", bench.GROUP_POINTS) in pairs
@@ -164,3 +164,29 @@ def test_classical_baselines_score_against_the_truth(tmp_path):
     assert poisson["cd_l1_mm"] < 2.5 and poisson["fscore"] > 0.2, poisson
     assert "flood-fill-oriented PCA normals" in by_method["screened poisson"]["note"]
     assert "| screened poisson | 1 |" in result["markdown"] and "| mask marching cubes | 1 |" in result["markdown"]
+
+
+def test_plan_docs_runs_expensive_methods_on_two_seeds_and_sweeps_on_the_first(tmp_path):
+    plan, cases = bench.build_plan("docs", tmp_path / "cases", (0, 1, 2), label_map=tmp_path / "absent.nii.gz")
+    runs = {(m.label, c.name) for m, c in plan}
+    main = [c for c in cases if c.group == bench.GROUP_POINTS]
+    assert [c.seed for c in main] == [0, 1, 2] and all((c.n_points, c.noise_mm) == bench.MAIN_POINT_CASE for c in main)
+    paper = f"sparseocc paper {bench.DOCS_PAPER_ITERATIONS // 1000}k it"
+    for label in (paper, "neuralpull default", "digs default"):
+        assert {c.seed for m, c in plan if m.label == label} == {0, 1}, label
+        assert all(c.group == bench.GROUP_POINTS for m, c in plan if m.label == label), label
+    assert all(("sparseocc default", c.name) in runs and ("screened poisson", c.name) in runs for c in main)
+    sweeps = [c for c in cases if c.group == bench.GROUP_SWEEP]
+    assert {(c.n_points, c.noise_mm) for c in sweeps} == set(bench.SWEEP_POINT_CASES) and {c.seed for c in sweeps} == {0}
+    assert [c.seed for c in cases if c.group == bench.GROUP_MASK] == [0]
+    assert next(m for m, _ in plan if m.label == paper).iterations == bench.DOCS_PAPER_ITERATIONS
+    with pytest.raises(ValueError):
+        bench.build_plan("nightly", tmp_path / "cases", (0,))
+
+
+def test_sweep_table_has_one_line_per_case_and_method():
+    rows = [{"group": bench.GROUP_SWEEP, "method": m, "case": c, "status": "ok", "cd_l1_mm": v, "reference": "true surface"}
+            for m, c, v in (("a", "n5000", 1.0), ("a", "n100000", 0.2), ("b", "n5000", 2.0))]
+    lines = bench.accuracy_table(rows, bench.GROUP_SWEEP, by_case=True)
+    assert sum(line.startswith("| n5000: ") for line in lines) == 2 and sum(line.startswith("| n100000: a |") for line in lines) == 1
+    assert "| n100000: a | 1 | 0.200 ± 0.000 |" in "\n".join(lines)

@@ -126,6 +126,13 @@ def test_paper_preset_runs_a_few_iterations():
     assert 450_000 < n_params < 470_000  # the paper's ~1.8 MB of fp32 weights
 
 
+def test_shorter_schedule_compresses_the_warmup():
+    assert build_fit_config("paper").method_config.warmup == 1000
+    assert build_fit_config("paper", iterations=2_000).method_config.warmup == 100  # 1000 x 2k / 20k
+    assert build_fit_config("paper", iterations=3).method_config.warmup == 1
+    assert build_fit_config("paper", iterations=40_000).method_config.warmup == 1000  # longer: kept
+
+
 def test_smoke_fit_separates_inside_from_outside_and_is_deterministic():
     pts = sphere_points(4000, 0.5)
     cfg = dataclasses.replace(build_fit_config("smoke").method_config, iterations=80)

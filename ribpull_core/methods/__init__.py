@@ -44,7 +44,8 @@ def build_fit_config(
     resolution: int | None = None,
     seed: int = 0,
 ) -> FitConfig:
-    """A fresh FitConfig for run preset `preset`, optionally another method, schedule or resolution."""
+    """A fresh FitConfig for run preset `preset`, optionally another method, schedule or resolution.
+    A shorter `iterations` than the preset's scales its warm-up by the same factor (at least 1)."""
     if preset not in RUN_PRESETS:
         raise RibPullInputError("bad_parameter", f"unknown preset {preset!r}; choose one of {sorted(RUN_PRESETS)}")
     default_method, mesh_res = RUN_PRESETS[preset]
@@ -54,7 +55,12 @@ def build_fit_config(
     if iterations is not None:
         if iterations < 1:
             raise RibPullInputError("bad_parameter", "iterations must be >= 1")
-        method_config = dataclasses.replace(method_config, iterations=int(iterations))
+        changes = {"iterations": int(iterations)}
+        # a shorter run is the preset's schedule compressed: the warm-up keeps its share of it
+        warmup = getattr(method_config, "warmup", None)
+        if warmup and iterations < method_config.iterations:
+            changes["warmup"] = max(1, round(warmup * iterations / method_config.iterations))
+        method_config = dataclasses.replace(method_config, **changes)
     if resolution is not None:
         if not 16 <= resolution <= 1024:
             raise RibPullInputError("bad_parameter", "resolution must be between 16 and 1024")
