@@ -73,7 +73,7 @@ def spawn(cmd: list[str], env: dict[str, str] | None = None, log_path: Path | No
           cwd: str | Path | None = None) -> subprocess.Popen:
     """Start `cmd` in its own process group (so it and its children can be stopped together);
     it gets SIGTERM if this process dies. Output goes to `log_path` or is inherited."""
-    out = open(log_path, "ab", buffering=0) if log_path else None
+    out = open(log_path, "ab", buffering=0) if log_path else None  # noqa: SIM115 (closed below once the child has it)
     try:
         return subprocess.Popen(
             cmd, env=env, cwd=cwd, stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT if out else None,

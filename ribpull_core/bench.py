@@ -6,7 +6,7 @@ skeleton.csv, speed.csv and PNG plots.
     ribpull bench --cases my_inputs/ -o out/     # adds your files (and `ribpull phantom` folders)
 
 Every (method, case) pair runs in a fresh child process (multiprocessing "spawn"), so its peak
-resident memory (ru_maxrss, MB) is its own; a sampler thread in the child also records the largest
+resident memory (VmHWM, MB) is its own; a sampler thread in the child also records the largest
 resident size seen during each stage. Neural methods go through `pipeline.run_pipeline`, the same
 call as `ribpull fit`; the classical baselines (screened Poisson on the points, marching cubes on a
 voxel mask) get the same mesh clean-up, skeleton and scoring. Surfaces are scored with
@@ -49,7 +49,7 @@ QUICK_NOISE_MM = 0.3
 QUICK_NEURALPULL_ITERATIONS = 200  # default (reference 8x256) network, short schedule (~0.2 s/it on 2 cores)
 QUICK_DIGS_ITERATIONS = 60  # default (reference SIREN) network, the smoke preset's length (~1 s/it on 2 cores)
 BASELINE_RESOLUTION = 256  # marching-cubes resolution of the Neural-Pull / DiGS baselines (the papers')
-SPEED_PAPER_ITERATIONS = 30  # paper preset iterations timed to extrapolate its full schedule
+SPEED_PAPER_ITERATIONS = 100  # paper preset iterations timed when the plan has no paper run on the case
 POISSON_DEPTH = 8  # octree depth of screened Poisson (2^8 cells over ~1.1x the longest side: ~1.2 mm;
 #                    depth 9 measured no better on the 20k-point phantom and ~1.7x slower)
 MASK_SPACING_MM = 1.0  # voxel size of the voxelised phantom masks
@@ -351,14 +351,23 @@ class RssSampler:
         self._sample()
 
     def columns(self) -> dict:
-        """rss_<stage>_mb for the known stages (MB, rounded) and peak_rss_mb (ru_maxrss of this process)."""
+        """rss_<stage>_mb for the known stages (MB, rounded) and peak_rss_mb (this process's peak)."""
         out = {f"rss_{s}_mb": round(v, 1) for s, v in self.peaks.items() if s in STAGES}
         out["peak_rss_mb"] = round(peak_rss_mb(), 1)
         return out
 
 
 def peak_rss_mb() -> float:
-    """This process's peak resident set size in MB (ru_maxrss: KB on Linux, bytes on macOS)."""
+    """This process's peak resident set size in MB: VmHWM of /proc/self/status on Linux, else
+    ru_maxrss (KB on Linux, bytes on macOS). Not ru_maxrss on Linux: it survives fork + exec, so a
+    spawned child would report its parent's peak whenever that is larger than its own."""
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024
+    except (OSError, ValueError, IndexError):
+        pass
     r = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return r / 2**20 if sys.platform == "darwin" else r / 1024
 
@@ -402,15 +411,19 @@ def iteration_cost(marks: list[tuple[float, int]], fit_s: float, iterations_run:
 
 
 def load_reference(case: dict):
-    """(reference, name) for scoring: the true mesh for phantom cases, else the input points."""
+    """(reference, name) for scoring: the true mesh for phantom cases, else the input points (for
+    label maps the centres of the boundary voxel faces, the surface the segmentation draws)."""
     import trimesh
 
     from .io import load_point_cloud
+    from .pointcloud import mask_boundary_cloud
 
     if case.get("truth_mesh"):
         return trimesh.load(case["truth_mesh"], force="mesh"), "true surface"
-    what = "input voxel centres" if case["input_kind"] == "mask" else "input points"
-    return load_point_cloud(Path(case["input_path"])), what
+    cloud = load_point_cloud(Path(case["input_path"]))
+    if case["input_kind"] == "mask":
+        return mask_boundary_cloud(cloud, max_points=10**9), "label-map boundary (voxel face centres)"
+    return cloud, "input points"
 
 
 def score_surface(case: dict, mesh, paper_units_per_mm: float, n_samples: int, seed: int) -> dict:
@@ -728,8 +741,13 @@ def run_task(task: dict, timeout_s: float | None = None) -> dict:
         row = json.loads(result.read_text())
     else:
         row = base_row(task)
-        why = f"ran past {timeout_s} s" if timeout_s and wall >= timeout_s else f"exit code {proc.exitcode}"
-        row["note"] = f"child process died ({why}; out of memory?)"
+        if timeout_s and wall >= timeout_s:
+            why = f"stopped after running past --task-timeout {timeout_s:g} s"
+        elif proc.exitcode == -9:
+            why = "killed by SIGKILL: out of memory?"
+        else:
+            why = f"exit code {proc.exitcode}; see the log above"
+        row["note"] = f"child process died ({why})"
     row["wall_s"] = wall
     return row
 
@@ -787,20 +805,32 @@ def skeleton_plan(case: Case) -> list[tuple[MethodSpec, Case]]:
     return runs
 
 
-def speed_plan(case: Case, default_row: dict | None, iterations: int = SPEED_PAPER_ITERATIONS) -> list[tuple[MethodSpec, Case]]:
-    """Speed section runs: the paper preset for `iterations` iterations, and the default preset's full
-    schedule (fit only) when no successful default row on this case can be reused."""
-    runs = [(MethodSpec(f"sparseocc paper ({iterations} it timed)", "speed", preset="paper",
-                        method="sparseocc", iterations=iterations), case)]
+def speed_plan(case: Case, default_row: dict | None, paper_row: dict | None = None,
+               iterations: int = SPEED_PAPER_ITERATIONS) -> list[tuple[MethodSpec, Case]]:
+    """Speed section runs: the paper preset for `iterations` iterations (fit only) unless the plan
+    already ran it on this case (paper_row), and the default preset's full schedule (fit only) unless
+    a successful default row on this case can be reused."""
+    runs = []
+    if paper_row is None:
+        runs.append((MethodSpec(f"sparseocc paper ({iterations} it timed)", "speed", preset="paper",
+                                method="sparseocc", iterations=iterations), case))
     if default_row is None:
         runs.append((MethodSpec("sparseocc default (fit only)", "speed", preset="default", method="sparseocc"), case))
     return runs
 
 
-def speed_rows(default_row: dict | None, timed: list[dict]) -> list[dict]:
+def preset_schedule(preset: str, method: str = "sparseocc") -> int:
+    """Iterations of a preset's full schedule."""
+    from .methods import build_fit_config
+
+    return int(build_fit_config(preset, method).method_config.iterations)
+
+
+def speed_rows(default_row: dict | None, timed: list[dict], paper_row: dict | None = None) -> list[dict]:
     """Rows of the speed table (paper vs default on the same case, same machine, same run), with the
     ratios: per-iteration cost and fit time (paper extrapolated to its full schedule / default
-    measured)."""
+    measured). paper_row: a (shortened) paper-preset run of the plan on that case, preferred to the
+    speed section's own short timing."""
     out = []
     d = default_row or next((r for r in timed if r.get("preset") == "default" and r.get("status") == "ok"), None)
     if d is not None and d.get("status") == "ok":
@@ -808,7 +838,11 @@ def speed_rows(default_row: dict | None, timed: list[dict]) -> list[dict]:
                     "schedule": d.get("iterations_planned"), "ms_per_iteration": d.get("ms_per_iteration"),
                     "fit_overhead_s": d.get("fit_overhead_s"), "fit_s": d.get("time_fit_s"),
                     "pipeline_total_s": d.get("time_total_s"), "fit_s_kind": "measured"})
-    p = next((r for r in timed if r.get("preset") == "paper"), None)
+    p = paper_row or next((r for r in timed if r.get("preset") == "paper"), None)
+    if paper_row is not None and paper_row.get("status") == "ok" and _finite(paper_row.get("ms_per_iteration")):
+        schedule = preset_schedule("paper")
+        p = {**paper_row, "iterations_planned": schedule,
+             "extrapolated_fit_s": round(_num(paper_row.get("fit_overhead_s")) + schedule * float(paper_row["ms_per_iteration"]) / 1000, 1)}
     if p is not None and p.get("status") == "ok":
         out.append({"preset": "paper", "method": p["method"], "case": p["case"], "iterations": p.get("iterations_run"),
                     "schedule": p.get("iterations_planned"), "ms_per_iteration": p.get("ms_per_iteration"),
@@ -951,7 +985,7 @@ def write_markdown(path: Path, rows: list[dict], skeleton_rows: list[dict] | Non
     out += ["", ("Paper units: lengths in the input's normalised frame (longest bounding-box side = 2, as in the "
             "paper), CD-L1 and HD ×100, CD-L2 ×10⁴. mean ± std over cases × seeds (sample std; 0 for one row). "
             "NC: normal consistency; F: F-score at the given distance. time: the method's own wall time "
-            "(scoring excluded); peak RSS: the child process's ru_maxrss."), ""]
+            "(scoring excluded); peak RSS: the child process's own peak (VmHWM)."), ""]
     for g in [*GROUP_ORDER, *sorted({r.get("group") for r in rows} - set(GROUP_ORDER) - {None})]:
         if any(r.get("group") == g for r in rows):
             out += accuracy_table(rows, g, by_case=g in GROUPS_BY_CASE) + [""]
@@ -967,8 +1001,9 @@ def write_markdown(path: Path, rows: list[dict], skeleton_rows: list[dict] | Non
     if speed is not None:
         out += ["## Speed: `paper` vs `default` preset (same machine, same run)", ""]
         out += speed_table(speed) if speed else ["(not measured)"]
-        out += ["", ("The paper preset is timed for a short run and its full schedule extrapolated as fit overhead + "
-                "schedule × ms/iteration; the default preset's time is measured (early stopping included)."), ""]
+        out += ["", ("The paper preset's full schedule is extrapolated from a shorter run as fit overhead + schedule × "
+                "ms/iteration (slope between the first and last progress reports); the default preset's time is "
+                "measured (early stopping included)."), ""]
     failed = [r for r in rows + (skeleton_rows or []) if r.get("status") != "ok"]
     if notes or failed:
         out += ["## Notes", ""] + [f"- {n}" for n in notes or []]
@@ -1051,7 +1086,7 @@ def plot_accuracy_vs_time(path: Path, rows: list[dict]) -> Path:
 
 
 def montage(path: Path, images: list[Path], columns: int = 2) -> Path | None:
-    """One PNG tiling the given renders (each titled by its file name); None when there are none."""
+    """One PNG tiling the given images (renders carry their own titles); None when there are none."""
     from matplotlib.image import imread
 
     images = [Path(p) for p in images if Path(p).exists()]
@@ -1062,8 +1097,7 @@ def montage(path: Path, images: list[Path], columns: int = 2) -> Path | None:
     for i, p in enumerate(images):
         ax = fig.add_subplot(rows_n, columns, i + 1)
         ax.imshow(imread(p))
-        ax.set_axis_off()
-        ax.set_title(p.stem.replace("__", " — "), fontsize=8)
+        ax.set_axis_off()  # each render carries its own title
     fig.subplots_adjust(left=0, right=1, bottom=0, top=0.95, wspace=0.02, hspace=0.1)
     fig.savefig(path, facecolor="white")
     return Path(path)
@@ -1142,9 +1176,12 @@ def run_bench(outdir: Path, plan: list, *, metric_samples: int = METRIC_SAMPLES,
         default_row = next((r for r in rows if r["case"] == speed_case.name and r.get("kind") == "pipeline"
                             and r.get("preset") == "default" and r.get("fit_method") == "sparseocc"
                             and r.get("status") == "ok"), None)
-        timed = run_plan(outdir, speed_plan(speed_case, default_row, speed_iterations), metric_samples, device,
-                         timeout_s, log)
-        speed = speed_rows(default_row, timed)
+        paper_row = next((r for r in rows if r["case"] == speed_case.name and r.get("kind") == "pipeline"
+                          and r.get("preset") == "paper" and r.get("fit_method") == "sparseocc"
+                          and r.get("status") == "ok"), None)
+        timed = run_plan(outdir, speed_plan(speed_case, default_row, paper_row, speed_iterations), metric_samples,
+                         device, timeout_s, log)
+        speed = speed_rows(default_row, timed, paper_row)
     meta = {**(meta or {}), "bench wall time": f"{time.perf_counter() - t0:.0f} s"}
     result = write_outputs(outdir, rows, skel_rows, speed, meta, notes)
     return {**result, "rows": rows, "skeleton_rows": skel_rows, "speed": speed}
@@ -1184,7 +1221,8 @@ def main(args: argparse.Namespace) -> int:
             "mode": mode, "seeds": list(seeds), "iterations": ", ".join(f"{k}: {v}" for k, v in its.items()) or "—",
             "surface metric samples per side": f"{args.metric_samples:,}", **machine_meta()}
     if not args.no_speed_section:
-        meta["speed section"] = f"paper preset timed for {SPEED_PAPER_ITERATIONS} iterations, its schedule extrapolated"
+        meta["speed section"] = ("paper preset's full schedule extrapolated from its run in the plan, else from "
+                                 f"{SPEED_PAPER_ITERATIONS} timed iterations")
     print(f"ribpull bench ({mode}): {len(plan)} runs on {len(cases)} cases -> {outdir}", file=sys.stderr)
     for label, n in its.items():
         print(f"  {label}: {n} iterations", file=sys.stderr)

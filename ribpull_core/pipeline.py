@@ -191,6 +191,7 @@ def run_pipeline(
     """
     from .io import load_point_cloud
     from .methods import build_fit_config
+    from .pointcloud import mask_boundary_cloud
 
     options = options or PipelineOptions()
     report = _Reporter(progress, should_cancel)
@@ -225,6 +226,9 @@ def run_pipeline(
         with timed("load"):
             cloud = load_point_cloud(Path(input_path), labels=options.labels, max_points=options.max_points,
                                      max_file_bytes=options.max_file_bytes)
+            if cloud.nifti_affine is not None:
+                # a label map's voxel centres fill the solid: fit (and score against) its boundary
+                cloud = mask_boundary_cloud(cloud, seed=options.seed)
             reference, reference_name = _reference_for_metrics(options, cloud)
         with timed("fit"):
             field, frame = fit_field(cloud, fit_config, device, report)

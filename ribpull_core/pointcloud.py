@@ -48,3 +48,54 @@ class PointCloud:
     def bbox_mm(self) -> tuple[np.ndarray, np.ndarray]:
         """(min (3,), max (3,)) corners of the axis-aligned bounding box in mm."""
         return self.points.min(axis=0), self.points.max(axis=0)
+
+
+def mask_voxel_indices(cloud: PointCloud) -> np.ndarray:
+    """(N, 3) int64 voxel indices (i, j, k) of a label-map cloud's points (voxel centres in mm), put
+    back on the grid through the inverse of its NIfTI affine."""
+    if cloud.nifti_affine is None:
+        raise ValueError("voxel indices need a cloud loaded from a NIfTI label map")
+    a = np.asarray(cloud.nifti_affine, dtype=np.float64)
+    return np.rint((cloud.points - a[:3, 3]) @ np.linalg.inv(a[:3, :3]).T).astype(np.int64)
+
+
+def mask_boundary_cloud(cloud: PointCloud, max_points: int = 120_000, seed: int = 0) -> PointCloud:
+    """The surface a label map draws, as points: the centre of every voxel face between a selected
+    voxel and an unselected neighbour (6-neighbourhood), in mm through the affine, each labelled with
+    its selected voxel's label.
+
+    Why: a label map's voxel centres fill the solid, so fitting a surface "through" them puts interior
+    voxels on it; the face centres lie on the boundary that marching cubes at 0.5 also follows. On a
+    1 mm phantom mask this took SparseOcc's CD-L1 to the true surface from 1.15 mm (voxel centres) to
+    the figure in docs/benchmarks.md. cloud: from a NIfTI label map (nifti_affine set). At most
+    max_points faces are kept (a seeded uniform subset). Returns a PointCloud that keeps the cloud's
+    affine, shape, source format/bytes and label names.
+    """
+    ijk = mask_voxel_indices(cloud)
+    lo = ijk.min(axis=0) - 1
+    local = ijk - lo
+    shape = tuple(int(s) for s in local.max(axis=0) + 2)
+    inside = np.zeros(shape, dtype=bool)
+    inside[tuple(local.T)] = True
+    labels = np.zeros(shape, dtype=np.int32)
+    labels[tuple(local.T)] = cloud.labels if cloud.labels is not None else 1
+    centres, face_labels = [], []
+    for axis in range(3):
+        for step in (1, -1):
+            neighbour_outside = ~np.roll(inside, -step, axis=axis)  # the padding keeps the roll from wrapping
+            faces = np.argwhere(inside & neighbour_outside)
+            offset = np.zeros(3)
+            offset[axis] = 0.5 * step
+            centres.append(faces + lo + offset)
+            face_labels.append(labels[tuple(faces.T)])
+    ijk_faces = np.concatenate(centres)
+    face_labels = np.concatenate(face_labels)
+    if len(ijk_faces) > max_points:
+        keep = np.sort(np.random.default_rng(seed).choice(len(ijk_faces), max_points, replace=False))
+        ijk_faces, face_labels = ijk_faces[keep], face_labels[keep]
+    a = np.asarray(cloud.nifti_affine, dtype=np.float64)
+    return PointCloud(points=ijk_faces @ a[:3, :3].T + a[:3, 3],
+                      labels=face_labels if cloud.labels is not None else None,
+                      source_format=cloud.source_format, source_bytes=cloud.source_bytes,
+                      nifti_affine=cloud.nifti_affine, nifti_shape=cloud.nifti_shape,
+                      label_names=dict(cloud.label_names))

@@ -575,3 +575,27 @@ def test_real_totalsegmentator_example():
         return float((np.argwhere(data == label) @ sform[:3, :3].T + sform[:3, 3])[:, 0].mean())
 
     assert mean_x(1) < 0 < mean_x(5)  # TotalSegmentator v2: 1 = spleen, 5 = liver
+
+
+def test_mask_boundary_cloud_puts_points_on_the_voxel_faces():
+    """A 3x3x3 block of label 7 (voxels 2 x 3 x 4 mm): 54 outer faces, on the block's mm boundary,
+    labelled 7; interior voxels give none. Two labels keep their own faces apart."""
+    from ribpull_core.pointcloud import PointCloud, mask_boundary_cloud, mask_voxel_indices
+
+    aff = np.diag([2.0, 3.0, 4.0, 1.0])
+    aff[:3, 3] = [10.0, 20.0, 30.0]
+    ijk = np.argwhere(np.ones((3, 3, 3), bool)) + [5, 6, 7]
+    labels = np.where(ijk[:, 0] == 5, 8, 7)
+    cloud = PointCloud(points=ijk @ aff[:3, :3].T + aff[:3, 3], labels=labels, nifti_affine=aff, nifti_shape=(20, 20, 20),
+                       source_format="nifti", label_names={7: "a", 8: "b"})
+    assert (mask_voxel_indices(cloud) == ijk).all()
+    b = mask_boundary_cloud(cloud)
+    assert len(b) == 54  # the outer faces only: faces between two selected voxels are not boundary
+    assert np.allclose(b.points.min(0), [19.0, 36.5, 56.0]) and np.allclose(b.points.max(0), [25.0, 45.5, 68.0])
+    on_x_min = np.isclose(b.points[:, 0], 19.0)
+    assert on_x_min.sum() == 9 and (b.labels[on_x_min] == 8).all()
+    assert set(b.labels.tolist()) == {7, 8} and b.label_names == {7: "a", 8: "b"} and b.source_format == "nifti"
+    assert np.allclose(b.nifti_affine, aff) and b.nifti_shape == (20, 20, 20)
+    assert len(mask_boundary_cloud(cloud, max_points=10)) == 10
+    with pytest.raises(ValueError):
+        mask_boundary_cloud(PointCloud(points=np.zeros((3, 3))))

@@ -106,8 +106,8 @@ def _maintenance_loop() -> None:
         _stop.wait(min(1.0, max(0.05, min(next_beat, next_sweep) - time.monotonic())))
     try:
         r.delete(key)
-    except Exception:  # noqa: BLE001
-        pass
+    except Exception as exc:  # noqa: BLE001  (shutting down: the heartbeat key expires on its own)
+        log.debug("could not delete heartbeat key %s: %s", key, exc)
 
 
 def start_maintenance() -> None:

@@ -46,7 +46,7 @@ class GridOccupancyField(nn.Module):
         self.n_levels, self.features, self.domain = n_levels, features, domain
         self.init_radius, self.prior_slope = init_radius, prior_slope
         growth = math.exp((math.log(max_resolution) - math.log(base_resolution)) / max(1, n_levels - 1))
-        res = [int(math.floor(base_resolution * growth**i)) for i in range(n_levels)]
+        res = [math.floor(base_resolution * growth**i) for i in range(n_levels)]
         table = 2**log2_table
         sizes = [min(table, (r + 1) ** 3) for r in res]
         offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]])

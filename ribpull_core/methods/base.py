@@ -173,7 +173,7 @@ def sample_pull_queries(
         sigma = knn_sigma(points, k)
     if scale is None:
         scale = 0.25 * math.sqrt(n / 20000.0)
-    per = max(1, int(round(total_queries / n)))
+    per = max(1, round(total_queries / n))
     src = np.repeat(np.arange(n), per)
     q = points[src] + (scale * sigma[src])[:, None] * rng.standard_normal((len(src), 3))
     _, nn = tree.query(q, k=1, workers=-1)
