@@ -868,6 +868,38 @@ def _num(x) -> float:
     return float(x) if _finite(x) else float("nan")
 
 
+def read_csv(path: Path) -> list[dict]:
+    """Rows of a CSV written by write_csv, numbers parsed back (int, float, bool), empty cells None."""
+    def parse(v: str):
+        if v == "":
+            return None
+        if v in ("True", "False"):
+            return v == "True"
+        for kind in (int, float):
+            try:
+                return kind(v)
+            except ValueError:
+                pass
+        return v
+
+    with open(path, newline="") as fh:
+        return [{k: parse(v) for k, v in r.items()} for r in csv.DictReader(fh)]
+
+
+def rewrite_outputs(outdir: Path, meta: dict | None = None, notes: list[str] | None = None) -> dict:
+    """Rebuild results.md and the plots of outdir from its results.csv (+ skeleton.csv, speed.csv when
+    present), e.g. after rows of several runs were put into one results.csv. Returns write_outputs'."""
+    outdir = Path(outdir)
+    if not (outdir / "results.csv").exists():
+        from .errors import RibPullInputError
+
+        raise RibPullInputError("bad_parameter", f"{outdir / 'results.csv'} does not exist: nothing to rewrite")
+    rows = read_csv(outdir / "results.csv")
+    skel = read_csv(outdir / "skeleton.csv") if (outdir / "skeleton.csv").exists() else None
+    speed = read_csv(outdir / "speed.csv") if (outdir / "speed.csv").exists() else None
+    return write_outputs(outdir, rows, skel, speed, meta, notes)
+
+
 def write_csv(path: Path, rows: list[dict], columns=COLUMNS) -> Path:
     """rows -> CSV with `columns` first, then any other keys (sorted); missing values are empty."""
     extra = sorted({k for r in rows for k in r} - set(columns))
@@ -1155,6 +1187,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--task-timeout", type=float, default=None, help="seconds after which one run is stopped")
     parser.add_argument("--no-skeleton-section", action="store_true")
     parser.add_argument("--no-speed-section", action="store_true")
+    parser.add_argument("--rewrite", action="store_true",
+                        help="run nothing: rebuild results.md and the plots in -o DIR from its CSVs")
 
 
 def run_bench(outdir: Path, plan: list, *, metric_samples: int = METRIC_SAMPLES, device: str = "auto",
@@ -1202,6 +1236,11 @@ def machine_meta() -> dict:
 def main(args: argparse.Namespace) -> int:
     """`ribpull bench`: build the plan, run it, write the outputs, print results.md. 0 if any row succeeded."""
     outdir = Path(args.output)
+    if args.rewrite:
+        result = rewrite_outputs(outdir, {"rewritten from": str(outdir / "results.csv"),
+                                          "date": time.strftime("%Y-%m-%d %H:%M %Z")})
+        print(result["markdown"])
+        return 0
     outdir.mkdir(parents=True, exist_ok=True)
     mode = "quick" if args.quick else (args.plan or "full")
     if args.quick and args.plan not in (None, "quick"):

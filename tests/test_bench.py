@@ -9,6 +9,7 @@ import pytest
 from matplotlib.image import imread
 
 from ribpull_core import bench
+from ribpull_core.errors import RibPullInputError
 
 
 def _rows() -> list[dict]:
@@ -225,3 +226,18 @@ def test_baselines_fit_a_small_phantom_end_to_end(tmp_path):
         artifacts = tmp_path / "out" / "runs" / f"phantom-s0-n3000-noise0.3-seed0__{method}_smoke" / "artifacts"
         for name in ("mesh.ply", "sdf.nii.gz", "skeleton.json", "metrics.json", "model.safetensors"):
             assert (artifacts / name).exists(), (method, name)
+
+
+def test_rewrite_rebuilds_the_same_tables_from_the_csvs(tmp_path):
+    rows = _rows()
+    speed = bench.speed_rows({"method": "sparseocc default", "case": "phantom-0", "status": "ok", "iterations_run": 600,
+                              "iterations_planned": 1000, "ms_per_iteration": 100.0, "fit_overhead_s": 5.0,
+                              "time_fit_s": 65.0}, [])
+    skel = [{"method": "contraction on true surface", "kind": "contraction_truth", "case": "phantom-0", "seed": 0,
+             "status": "ok", "skel_mean_dist_mm": 0.04, "skel_n_paths": 24}]
+    first = bench.write_outputs(tmp_path, rows, skel, speed, {"mode": "test"})
+    again = bench.rewrite_outputs(tmp_path, {"mode": "test"})
+    assert again["markdown"] == first["markdown"]
+    assert bench.read_csv(tmp_path / "results.csv")[0]["cd_l1_mm"] == 1.0
+    with pytest.raises(RibPullInputError):
+        bench.rewrite_outputs(tmp_path / "empty")
