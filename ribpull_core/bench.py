@@ -544,10 +544,10 @@ def mask_marching_cubes(cloud):
     import trimesh
     from skimage.measure import marching_cubes
 
-    if cloud.nifti_affine is None:
-        raise ValueError("marching cubes on a mask needs a NIfTI label map input")
+    from .pointcloud import mask_voxel_indices
+
+    ijk = mask_voxel_indices(cloud)  # ValueError unless the cloud comes from a NIfTI label map
     a = np.asarray(cloud.nifti_affine, dtype=np.float64)
-    ijk = np.rint((cloud.points - a[:3, 3]) @ np.linalg.inv(a[:3, :3]).T).astype(np.int64)
     mask = np.zeros(np.asarray(cloud.nifti_shape) + 2, dtype=np.float32)
     mask[ijk[:, 0] + 1, ijk[:, 1] + 1, ijk[:, 2] + 1] = 1.0
     verts, faces, _, _ = marching_cubes(mask, level=0.5)
@@ -1191,6 +1191,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="run nothing: rebuild results.md and the plots in -o DIR from its CSVs")
 
 
+def sparseocc_row(rows: list[dict], case: Case, preset: str) -> dict | None:
+    """The plan's first successful SparseOcc pipeline row of `preset` on `case` (None if there is none)."""
+    return next((r for r in rows if r["case"] == case.name and r.get("kind") == "pipeline" and r.get("preset") == preset
+                 and r.get("fit_method") == "sparseocc" and r.get("status") == "ok"), None)
+
+
 def run_bench(outdir: Path, plan: list, *, metric_samples: int = METRIC_SAMPLES, device: str = "auto",
               skeleton_case: Case | None = None, speed_case: Case | None = None, notes: list[str] | None = None,
               meta: dict | None = None, timeout_s: float | None = None, speed_iterations: int = SPEED_PAPER_ITERATIONS,
@@ -1207,12 +1213,7 @@ def run_bench(outdir: Path, plan: list, *, metric_samples: int = METRIC_SAMPLES,
     speed = None
     if speed_case is not None:
         log("speed section ...")
-        default_row = next((r for r in rows if r["case"] == speed_case.name and r.get("kind") == "pipeline"
-                            and r.get("preset") == "default" and r.get("fit_method") == "sparseocc"
-                            and r.get("status") == "ok"), None)
-        paper_row = next((r for r in rows if r["case"] == speed_case.name and r.get("kind") == "pipeline"
-                          and r.get("preset") == "paper" and r.get("fit_method") == "sparseocc"
-                          and r.get("status") == "ok"), None)
+        default_row, paper_row = (sparseocc_row(rows, speed_case, p) for p in ("default", "paper"))
         timed = run_plan(outdir, speed_plan(speed_case, default_row, paper_row, speed_iterations), metric_samples,
                          device, timeout_s, log)
         speed = speed_rows(default_row, timed, paper_row)

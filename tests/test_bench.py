@@ -198,7 +198,14 @@ def test_speed_prefers_the_plans_paper_run_and_extrapolates_its_full_schedule():
                "iterations_planned": 1000, "ms_per_iteration": 40.0, "fit_overhead_s": 4.0, "time_fit_s": 44.0}
     paper = {"method": "sparseocc paper 2k it", "case": "c", "preset": "paper", "status": "ok", "iterations_run": 2000,
              "iterations_planned": 2000, "ms_per_iteration": 260.0, "fit_overhead_s": 8.0}
-    assert bench.speed_plan(bench.Case("c", bench.GROUP_POINTS, "x.ply", "points"), default, paper) == []
+    case = bench.Case("c", bench.GROUP_POINTS, "x.ply", "points")
+    assert bench.speed_plan(case, default, paper) == []
+    plan_rows = [{**default, "kind": "pipeline", "preset": "default", "fit_method": "sparseocc"},
+                 {**paper, "kind": "pipeline", "fit_method": "sparseocc", "status": "failed"},
+                 {**paper, "kind": "pipeline", "fit_method": "sparseocc"}]
+    assert bench.sparseocc_row(plan_rows, case, "default") is plan_rows[0]
+    assert bench.sparseocc_row(plan_rows, case, "paper") is plan_rows[2]  # the failed one is skipped
+    assert bench.sparseocc_row(plan_rows, bench.Case("other", bench.GROUP_POINTS, "y.ply", "points"), "paper") is None
     rows = bench.speed_rows(default, [], paper)
     schedule = bench.preset_schedule("paper")
     assert schedule == 20_000
