@@ -1173,14 +1173,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="<= 15 min on 2 cores: one phantom case, short baselines, mask + real map, skeletons, "
                              "speed (same as --plan quick)")
     parser.add_argument("--plan", choices=PLANS, default=None,
-                        help="quick (as --quick); docs: what docs/benchmarks.md shows (~1.5 h on 2 cores); "
+                        help="quick (as --quick); docs: what docs/benchmarks.md shows (~65 min on 2 cores); "
                              "full: every method on every case and seed, SparseOcc paper at 20k iterations "
                              "(hours; default)")
     parser.add_argument("--cases", default=None, help="folder of extra inputs (point files, label maps, phantom folders)")
     parser.add_argument("--seeds", type=int, nargs="+", default=None, help=f"seeds (default {list(FULL_SEEDS)}; quick: 0)")
     parser.add_argument("--methods", nargs="+", default=None,
                         help="only methods whose label starts with one of these (or of this kind: pipeline, poisson, mask_mc)")
-    parser.add_argument("--points", type=int, default=None, help=f"points of the quick phantom case (default {QUICK_POINTS})")
+    parser.add_argument("--points", type=int, default=None, help=f"points of the main phantom case (default {QUICK_POINTS})")
     parser.add_argument("--label-map", default=str(REAL_LABEL_MAP), help="the real label map case ('' to leave out)")
     parser.add_argument("--metric-samples", type=int, default=METRIC_SAMPLES, help="surface samples per side for scoring")
     parser.add_argument("--device", default="auto", help="auto | cpu | cuda (neural methods)")
