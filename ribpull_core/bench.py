@@ -473,6 +473,21 @@ def render_run(path: Path, mesh, skeleton, title: str) -> None:
     render_preview(path, mesh, polylines, title=title)
 
 
+def score_and_render(task: dict, timer: StageTimer, mesh, skeleton, paper_units_per_mm: float | None) -> dict:
+    """The scoring columns of a run: surface metrics of `mesh` (when paper_units_per_mm is given) and
+    skeleton metrics against the case's truth, timed as stage "score"; renders the run if asked."""
+    case, spec = task["case"], task["spec"]
+    row: dict = {}
+    with timer("score"):
+        if paper_units_per_mm is not None:
+            row.update(score_surface(case, mesh, paper_units_per_mm, task["metric_samples"], int(case["seed"])))
+        row.update(score_skeleton(case, skeleton))
+    row["time_score_s"] = round(timer.times["score"], 3)
+    if task.get("render"):
+        render_run(Path(task["rundir"]) / "render.png", mesh, skeleton, f"{spec['label']} — {case['name']}")
+    return row
+
+
 def run_pipeline_task(task: dict, sampler: RssSampler, timer: StageTimer) -> dict:
     """A neural method through run_pipeline, then scored; returns the row's columns."""
     import trimesh
@@ -504,12 +519,7 @@ def run_pipeline_task(task: dict, sampler: RssSampler, timer: StageTimer) -> dic
                weights_to_input_fp32=w["ratio_fp32"], mesh_bytes=result.artifacts["mesh.ply"].stat().st_size)
     mesh = trimesh.load(result.artifacts["mesh.ply"], force="mesh")
     skel = Skeleton.from_json(json.loads(result.artifacts["skeleton.json"].read_text())) if "skeleton.json" in result.artifacts else None
-    with timer("score"):
-        row.update(score_surface(case, mesh, 1.0 / m["frame"]["half_extent_mm"], task["metric_samples"], int(case["seed"])))
-        row.update(score_skeleton(case, skel))
-    if task.get("render"):
-        render_run(rundir / "render.png", mesh, skel, f"{spec['label']} — {case['name']}")
-    row["time_score_s"] = round(timer.times["score"], 3)
+    row.update(score_and_render(task, timer, mesh, skel, 1.0 / m["frame"]["half_extent_mm"]))
     return row
 
 
@@ -551,7 +561,7 @@ def mask_marching_cubes(cloud):
     mask = np.zeros(np.asarray(cloud.nifti_shape) + 2, dtype=np.float32)
     mask[ijk[:, 0] + 1, ijk[:, 1] + 1, ijk[:, 2] + 1] = 1.0
     verts, faces, _, _ = marching_cubes(mask, level=0.5)
-    mesh = trimesh.Trimesh((verts - 1.0) @ a[:3, :3].T + a[:3, 3], faces, process=True)
+    mesh = trimesh.Trimesh(trimesh.transform_points(verts - 1.0, a), faces, process=True)
     if mesh.volume < 0:
         mesh.invert()
     return mesh
@@ -588,13 +598,7 @@ def run_classical_task(task: dict, sampler: RssSampler, timer: StageTimer) -> di
         skel = skeleton_of(mesh, cloud)
     row.update(timer.columns())
     row.update(input_bytes=cloud.source_bytes, mesh_bytes=(rundir / "mesh.ply").stat().st_size, device="cpu")
-    with timer("score"):
-        row.update(score_surface(case, mesh, UnitFrame.fit(cloud.points).paper_units_per_mm, task["metric_samples"],
-                                 int(case["seed"])))
-        row.update(score_skeleton(case, skel))
-    row["time_score_s"] = round(timer.times["score"], 3)
-    if task.get("render"):
-        render_run(rundir / "render.png", mesh, skel, f"{spec['label']} — {case['name']}")
+    row.update(score_and_render(task, timer, mesh, skel, UnitFrame.fit(cloud.points).paper_units_per_mm))
     return row
 
 
@@ -617,7 +621,7 @@ def run_skeleton_task(task: dict, sampler: RssSampler, timer: StageTimer) -> dic
     from .io import load_point_cloud
     from .phantom import PhantomConfig, make_phantom, voxelize
 
-    case, spec, rundir = task["case"], task["spec"], Path(task["rundir"])
+    case, spec = task["case"], task["spec"]
     if spec["kind"] == "contraction_truth":
         with timer("load"):
             mesh = trimesh.load(case["truth_mesh"], force="mesh")
@@ -631,12 +635,7 @@ def run_skeleton_task(task: dict, sampler: RssSampler, timer: StageTimer) -> dic
             mesh = None
         with timer("skeleton"):
             skel = thinning.voxel_skeleton(vol, affine)
-    row = timer.columns()
-    with timer("score"):
-        row.update(score_skeleton(case, skel))
-    if task.get("render"):
-        render_run(rundir / "render.png", mesh, skel, f"{spec['label']} — {case['name']}")
-    return row
+    return {**timer.columns(), **score_and_render(task, timer, mesh, skel, None)}
 
 
 def run_speed_task(task: dict, sampler: RssSampler, timer: StageTimer) -> dict:

@@ -53,10 +53,12 @@ class PointCloud:
 def mask_voxel_indices(cloud: PointCloud) -> np.ndarray:
     """(N, 3) int64 voxel indices (i, j, k) of a label-map cloud's points (voxel centres in mm), put
     back on the grid through the inverse of its NIfTI affine."""
+    from trimesh import transform_points
+
     if cloud.nifti_affine is None:
         raise ValueError("voxel indices need a cloud loaded from a NIfTI label map")
-    a = np.asarray(cloud.nifti_affine, dtype=np.float64)
-    return np.rint((cloud.points - a[:3, 3]) @ np.linalg.inv(a[:3, :3]).T).astype(np.int64)
+    inverse = np.linalg.inv(np.asarray(cloud.nifti_affine, dtype=np.float64))
+    return np.rint(transform_points(cloud.points, inverse)).astype(np.int64)
 
 
 def mask_boundary_cloud(cloud: PointCloud, max_points: int = 120_000, seed: int = 0) -> PointCloud:
@@ -94,8 +96,9 @@ def mask_boundary_cloud(cloud: PointCloud, max_points: int = 120_000, seed: int 
     if len(ijk_faces) > max_points:
         keep = np.sort(np.random.default_rng(seed).choice(len(ijk_faces), max_points, replace=False))
         ijk_faces, face_labels = ijk_faces[keep], face_labels[keep]
-    a = np.asarray(cloud.nifti_affine, dtype=np.float64)
-    return PointCloud(points=ijk_faces @ a[:3, :3].T + a[:3, 3],
+    from trimesh import transform_points
+
+    return PointCloud(points=transform_points(ijk_faces, np.asarray(cloud.nifti_affine, dtype=np.float64)),
                       labels=face_labels if cloud.labels is not None else None,
                       source_format=cloud.source_format, source_bytes=cloud.source_bytes,
                       nifti_affine=cloud.nifti_affine, nifti_shape=cloud.nifti_shape,
