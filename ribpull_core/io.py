@@ -244,6 +244,8 @@ def load_point_cloud(
     max_file_bytes: int = 512 * 1024 * 1024,
     min_points: int = 100,
     format: str | None = None,
+    units: str = "mm",
+    max_nifti_bytes: int | None = None,
 ) -> PointCloud:
     """Load a point cloud (coordinates in mm) from a file and validate it.
 
@@ -254,6 +256,10 @@ def load_point_cloud(
         before anything is read.
     format: overrides detection (one of ply, xyz, txt, csv, npy, npz, pcd, nifti). Otherwise an
         unambiguous magic number (PLY, NPY, NPZ/zip, PCD, NIfTI) wins, then the extension.
+    units: unit of the file's coordinates (NIfTI: of its affine), "mm" (default), "cm" or "m";
+        points (and the NIfTI affine) are converted to mm.
+    max_nifti_bytes: NIfTI only - most bytes of voxel data (header dims x dtype), checked before any
+        voxel is read (default MAX_NIFTI_BYTES).
     Returns a PointCloud with points (N, 3) float64 mm, unit normals or None, int32 labels or
     None, source_format and source_bytes (and the NIfTI affine/shape/label names for label maps).
     Raises RibPullInputError (codes: see ribpull_core.errors) for anything wrong with the input.
@@ -264,6 +270,8 @@ def load_point_cloud(
             f"need 1 <= min_points <= max_points and max_file_bytes >= 1, got min_points="
             f"{min_points}, max_points={max_points}, max_file_bytes={max_file_bytes}",
         )
+    if units not in UNIT_SCALE:
+        raise RibPullInputError("bad_parameter", f"units must be one of {', '.join(UNIT_SCALE)}, got {units!r}")
     path = Path(path)
     try:
         st = os.stat(path)
@@ -283,6 +291,7 @@ def load_point_cloud(
     fmt = _detect_format(path, format)
     try:
         if fmt == "nifti":
+            check_nifti_header(path, MAX_NIFTI_BYTES if max_nifti_bytes is None else max_nifti_bytes)
             cloud = _load_nifti(path, labels, max_points)
         else:
             cloud = _LOADERS[fmt](path, max_points)
@@ -295,6 +304,11 @@ def load_point_cloud(
             "Check that the file is complete and really is in this format.",
         ) from None
     validate_points(cloud.points, min_points, max_points)
+    if UNIT_SCALE[units] != 1.0:
+        cloud.points = cloud.points * UNIT_SCALE[units]
+        if cloud.nifti_affine is not None:
+            cloud.nifti_affine = cloud.nifti_affine.copy()
+            cloud.nifti_affine[:3, :] *= UNIT_SCALE[units]
     cloud.normals = _clean_normals(cloud.normals, len(cloud.points))
     if cloud.labels is not None and len(cloud.labels) != len(cloud.points):
         raise RibPullInputError(
@@ -757,6 +771,49 @@ def _load_pcd(path: Path, max_points: int) -> PointCloud:
 TOTALSEG_RIB_LABELS: tuple[int, ...] = tuple(range(92, 116))  # rib_left_1..12, rib_right_1..12
 RIBSEG_RIB_LABELS: tuple[int, ...] = tuple(range(1, 25))
 MAX_NIFTI_VOXELS = 1024**3  # larger volumes are refused before their data is read
+MAX_NIFTI_BYTES = 1024**3  # voxel data (dims x dtype) of a label map, checked from the header
+#: factor from a unit to mm (load_point_cloud(units=...))
+UNIT_SCALE = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
+
+
+def check_nifti_header(path: Path, max_bytes: int) -> None:
+    """Refuse a NIfTI whose header says its voxel data (dims x bitpix) is over `max_bytes`, before
+    any voxel is read or decompressed (only the first 540 bytes of the stream are inflated)."""
+    import gzip
+    import struct
+
+    with open(path, "rb") as f:
+        gz = f.read(2) == b"\x1f\x8b"
+    try:
+        with gzip.open(path, "rb") if gz else open(path, "rb") as f:
+            head = f.read(540)
+    except (OSError, EOFError, ValueError):
+        raise RibPullInputError("parse_error", f"'{path.name}' is not a readable (gzipped) NIfTI file") from None
+    if len(head) < 348:
+        raise RibPullInputError("parse_error", f"'{path.name}' is shorter than a NIfTI header (348 bytes)")
+    for endian in ("<", ">"):
+        n = struct.unpack(endian + "i", head[:4])[0]
+        if n == 348:
+            dims = struct.unpack(endian + "8h", head[40:56])
+            bitpix = struct.unpack(endian + "h", head[72:74])[0]
+            break
+        if n == 540 and len(head) >= 540:
+            dims = struct.unpack(endian + "8q", head[16:80])
+            bitpix = struct.unpack(endian + "h", head[14:16])[0]
+            break
+    else:
+        raise RibPullInputError("parse_error", f"'{path.name}' has no NIfTI-1/-2 header (sizeof_hdr is not 348/540)")
+    ndim = int(dims[0])
+    if not 1 <= ndim <= 7 or any(int(d) < 1 for d in dims[1:ndim + 1]) or bitpix not in (1, 8, 16, 24, 32, 64, 128, 256):
+        raise RibPullInputError(
+            "parse_error", f"the NIfTI header of '{path.name}' has invalid dims {tuple(dims[:ndim + 1])} or bitpix {bitpix}")
+    nbytes = int(np.prod([int(d) for d in dims[1:ndim + 1]], dtype=object)) * bitpix // 8
+    if nbytes > max_bytes:
+        raise RibPullInputError(
+            "too_large",
+            f"the NIfTI header says {tuple(int(d) for d in dims[1:ndim + 1])} voxels of {bitpix} bits "
+            f"({nbytes / 2**20:.0f} MiB); the limit is {max_bytes / 2**20:.0f} MiB of voxel data",
+        )
 _MAX_MASK_DISTINCT = 1000  # integral volumes with more distinct values look like images
 
 
@@ -810,6 +867,15 @@ def _nifti_to_cloud(img, labels: list[int] | None, max_points: int) -> PointClou
         raise RibPullInputError(
             "too_large", f"the NIfTI volume {shape} has more than {MAX_NIFTI_VOXELS} voxels"
         )
+    affine = np.asarray(img.affine, dtype=np.float64)
+    if not np.isfinite(affine).all():
+        raise RibPullInputError(
+            "bad_affine", "the NIfTI affine (sform/qform) contains NaN or infinite values; fix the header's "
+                          "voxel-to-world transform")
+    if abs(float(np.linalg.det(affine[:3, :3]))) < 1e-12:
+        raise RibPullInputError(
+            "bad_affine", "the NIfTI affine (sform/qform) is singular (zero voxel size or collapsed axes); "
+                          "fix the header's voxel-to-world transform / pixdim")
     vol = np.asanyarray(img.dataobj)
     while vol.ndim > 3:  # drop trailing singleton axes (a view, no copy)
         vol = vol[..., 0]
@@ -823,7 +889,6 @@ def _nifti_to_cloud(img, labels: list[int] | None, max_points: int) -> PointClou
         ijk = np.argwhere(mask.T)[:, ::-1]  # (N, 3) voxel indices i, j, k
     else:
         ijk = np.argwhere(mask)
-    affine = np.asarray(img.affine, dtype=np.float64)
     points = ijk @ affine[:3, :3].T + affine[:3, 3]
     values = vol[tuple(ijk.T)].astype(np.int32)
     return PointCloud(

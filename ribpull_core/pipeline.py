@@ -47,6 +47,7 @@ class PipelineOptions:
     metrics_samples: int | None = None
     max_points: int = 2_000_000
     max_file_bytes: int = 512 * 1024 * 1024
+    units: str = "mm"
 
 
 @dataclass
@@ -225,7 +226,7 @@ def run_pipeline(
     try:
         with timed("load"):
             cloud = load_point_cloud(Path(input_path), labels=options.labels, max_points=options.max_points,
-                                     max_file_bytes=options.max_file_bytes)
+                                     max_file_bytes=options.max_file_bytes, units=options.units)
             if cloud.nifti_affine is not None:
                 # a label map's voxel centres fill the solid: fit (and score against) its boundary
                 cloud = mask_boundary_cloud(cloud, seed=options.seed)
