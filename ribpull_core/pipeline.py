@@ -340,6 +340,7 @@ def _metrics(cloud, reference, reference_name, mesh, field, frame, fit_config, s
         "iterations_run": field.iterations_run,
         "iterations_planned": getattr(fit_config.method_config, "iterations", None),
         "fit_seconds": round(field.fit_seconds, 3),
+        "loss_terms": {k: round(v, 6) for k, v in field.loss_terms.items()},
         "surface_level": field.level,
         "reference": reference_name,
         "surface": surface,

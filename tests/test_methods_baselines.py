@@ -27,6 +27,7 @@ from ribpull_core.methods.digs import (
     spatial_gradient,
 )
 from ribpull_core.methods.neuralpull import NeuralPull, NeuralPullConfig, neural_pull_loss
+from ribpull_core.methods.training import with_schedule
 
 CENTRE = np.array([0.05, -0.05, 0.0])
 # Not an init sphere (Neural-Pull r=1.0, DiGS's irregular ~0.6-1.4), so the fit must move the surface.
@@ -147,7 +148,10 @@ def test_siren_layer_shapes_and_plain_init():
 # --- end-to-end smoke fits -------------------------------------------------------------------
 
 def _fit(cls, **overrides) -> tuple[FittedField, list[FitProgress], float]:
-    cfg = dataclasses.replace(cls.presets["smoke"](), **overrides)
+    cfg = cls.presets["smoke"]()
+    if "iterations" in overrides:
+        cfg = with_schedule(cfg, iterations=overrides.pop("iterations"))
+    cfg = dataclasses.replace(cfg, **overrides)
     reports: list[FitProgress] = []
     pts = sphere_points()
     field = cls(cfg).fit(pts, torch.device("cpu"), progress=reports.append)
@@ -222,7 +226,7 @@ def test_cancellation_raises_job_canceled(cls):
         calls["n"] += 1
         return calls["n"] > 2
 
-    cfg = dataclasses.replace(cls.presets["smoke"](), iterations=1000)
+    cfg = with_schedule(cls.presets["smoke"](), iterations=1000)
     with pytest.raises(JobCanceled):
         cls(cfg).fit(sphere_points(500), torch.device("cpu"), should_cancel=should_cancel)
     assert calls["n"] == 3  # checked regularly, stopped at the first True
@@ -238,10 +242,10 @@ def test_presets_and_registry(name, cls, config_cls):
         assert fc.method == name and fc.method_config == cfg
     paper = cls.presets["paper"]()
     if cls is NeuralPull:
-        assert (paper.iterations, paper.batch_size, paper.lr, paper.warmup) == (40_000, 5_000, 1e-3, 1_000)
+        assert (paper.iterations, paper.batch_size, paper.schedule.lr, paper.schedule.warmup) == (40_000, 5_000, 1e-3, 1_000)
         assert (paper.layers, paper.hidden, paper.total_queries) == (8, 256, 1_000_000)
     else:
-        assert (paper.iterations, paper.n_surface, paper.n_uniform, paper.lr, paper.grad_clip) == (
+        assert (paper.iterations, paper.n_surface, paper.n_uniform, paper.schedule.lr, paper.schedule.grad_clip) == (
             10_000, 15_000, 15_000, 5e-5, 10.0
         )
         assert (paper.hidden, paper.hidden_layers, paper.init, paper.omega) == (256, 4, "mfgi", 30.0)
@@ -252,3 +256,10 @@ def test_neuralpull_rejects_skip_outside_the_network():
     cfg = dataclasses.replace(NeuralPull.presets["smoke"](), layers=4, skip=4)
     with pytest.raises(ValueError, match="skip"):
         NeuralPull(cfg).fit(sphere_points(200), torch.device("cpu"))
+
+
+@pytest.mark.parametrize("cls,terms", [(NeuralPull, {"pull"}), (DiGS, {"manifold", "off_surface", "eikonal", "divergence"})])
+def test_one_loop_reports_every_named_loss_term(cls, terms):
+    field, _, _ = _fit(cls, iterations=30)
+    assert set(field.loss_terms) == terms
+    assert all(np.isfinite(v) for v in field.loss_terms.values())

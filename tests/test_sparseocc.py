@@ -25,6 +25,7 @@ from ribpull_core.losses import (
 from ribpull_core.methods import build_fit_config
 from ribpull_core.methods.base import sample_pull_queries, warmup_cosine_lr
 from ribpull_core.methods.sparseocc import SparseOcc, margin_and_gradient, space_labels
+from ribpull_core.methods.training import with_schedule
 
 
 def sphere_points(n: int, r: float = 0.5, seed: int = 0) -> np.ndarray:
@@ -118,8 +119,8 @@ def test_space_labels_on_a_sphere_are_right():
 
 def test_paper_preset_runs_a_few_iterations():
     cfg = build_fit_config("paper", iterations=3)
-    mc = dataclasses.replace(cfg.method_config, n_queries=20_000)
-    assert mc.network == "mlp" and mc.mlp_layers == 8 and mc.mlp_hidden == 256
+    mc = dataclasses.replace(cfg.method_config, queries=dataclasses.replace(cfg.method_config.queries, n_queries=20_000))
+    assert mc.field.network == "mlp" and mc.field.mlp_layers == 8 and mc.field.mlp_hidden == 256
     field = SparseOcc(mc).fit(sphere_points(3000), torch.device("cpu"))
     assert field.iterations_run == 3 and field.kind == "occupancy"
     n_params = sum(p.numel() for p in field.module.parameters())
@@ -127,15 +128,15 @@ def test_paper_preset_runs_a_few_iterations():
 
 
 def test_shorter_schedule_compresses_the_warmup():
-    assert build_fit_config("paper").method_config.warmup == 1000
-    assert build_fit_config("paper", iterations=2_000).method_config.warmup == 100  # 1000 x 2k / 20k
-    assert build_fit_config("paper", iterations=3).method_config.warmup == 1
-    assert build_fit_config("paper", iterations=40_000).method_config.warmup == 1000  # longer: kept
+    assert build_fit_config("paper").method_config.schedule.warmup == 1000
+    assert build_fit_config("paper", iterations=2_000).method_config.schedule.warmup == 100  # 1000 x 2k / 20k
+    assert build_fit_config("paper", iterations=3).method_config.schedule.warmup == 1
+    assert build_fit_config("paper", iterations=40_000).method_config.schedule.warmup == 1000  # longer: kept
 
 
 def test_smoke_fit_separates_inside_from_outside_and_is_deterministic():
     pts = sphere_points(4000, 0.5)
-    cfg = dataclasses.replace(build_fit_config("smoke").method_config, iterations=80)
+    cfg = with_schedule(build_fit_config("smoke").method_config, iterations=80)
     f1 = SparseOcc(cfg).fit(pts, torch.device("cpu"))
     probe = np.array([[0, 0, 0], [0.3, 0, 0], [0.9, 0.9, 0.9], [0, 0.8, 0]], np.float32)
     s = f1.evaluate(probe)["inside_score"]
@@ -145,7 +146,7 @@ def test_smoke_fit_separates_inside_from_outside_and_is_deterministic():
 
 
 def test_fit_can_be_canceled():
-    cfg = dataclasses.replace(build_fit_config("smoke").method_config, iterations=50)
+    cfg = with_schedule(build_fit_config("smoke").method_config, iterations=50)
     calls = {"n": 0}
 
     def cancel():
@@ -154,3 +155,11 @@ def test_fit_can_be_canceled():
 
     with pytest.raises(JobCanceled):
         SparseOcc(cfg).fit(sphere_points(2000), torch.device("cpu"), should_cancel=cancel)
+
+
+def test_default_loss_dict_names_each_term_and_metrics_report_them():
+    cfg = with_schedule(build_fit_config("smoke").method_config, iterations=40)
+    field = SparseOcc(cfg).fit(sphere_points(3000), torch.device("cpu"))
+    # eq. 1 sampling and RibPull's two hinges for the whole run; eq. 2 entropy while its weight is on
+    assert set(field.loss_terms) == {"sampling", "entropy", "free_space", "near_surface"}
+    assert field.loss_terms["sampling"] > 0 and field.loss_terms["free_space"] >= 0

@@ -7,12 +7,12 @@ resolution; `--method` swaps the method and keeps the preset name.
 
 from __future__ import annotations
 
-import dataclasses
 import importlib
 
 from ..config import FitConfig, MeshConfig
 from ..errors import RibPullInputError
 from .base import Method
+from .training import with_schedule
 
 #: method name -> "module:Class"
 METHOD_CLASSES = {
@@ -55,12 +55,12 @@ def build_fit_config(
     if iterations is not None:
         if iterations < 1:
             raise RibPullInputError("bad_parameter", "iterations must be >= 1")
+        schedule = method_config.schedule
         changes = {"iterations": int(iterations)}
         # a shorter run is the preset's schedule compressed: the warm-up keeps its share of it
-        warmup = getattr(method_config, "warmup", None)
-        if warmup and iterations < method_config.iterations:
-            changes["warmup"] = max(1, round(warmup * iterations / method_config.iterations))
-        method_config = dataclasses.replace(method_config, **changes)
+        if schedule.warmup and iterations < schedule.iterations:
+            changes["warmup"] = max(1, round(schedule.warmup * iterations / schedule.iterations))
+        method_config = with_schedule(method_config, **changes)
     if resolution is not None:
         if not 16 <= resolution <= 1024:
             raise RibPullInputError("bad_parameter", "resolution must be between 16 and 1024")

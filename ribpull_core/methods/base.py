@@ -12,7 +12,7 @@ import math
 import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from typing import Any, ClassVar
 
 import numpy as np
@@ -58,6 +58,8 @@ class FittedField:
     iterations_run: int = 0
     fit_seconds: float = 0.0
     loss_history: list[float] = field(default_factory=list)
+    #: name -> final (recent mean) weighted value of each loss term, as summed into the total
+    loss_terms: dict[str, float] = field(default_factory=dict)
 
     @property
     def device(self) -> torch.device:
@@ -104,18 +106,46 @@ class FittedField:
 
 
 class Method(ABC):
-    """A surface-fitting method: one class, one `fit`. Subclasses set `name` and `config_class`."""
+    """A surface-fitting method as a *model*: it supplies a network, parameter groups and named loss
+    terms; the one training loop (`training.train`) does the rest. Subclasses set `name`, `kind`,
+    `config_class` and `presets`; their config has a `schedule` (training.ScheduleConfig) and `seed`.
+    """
 
     name: ClassVar[str]
+    #: "occupancy" (2 logits [out, in]) or "sdf" (signed distance, negative inside)
+    kind: ClassVar[str]
     config_class: ClassVar[type]
     #: named configs of this method: "paper" (the reference configuration), "default" (what RibPull
     #: runs by default) and "smoke" (seconds, for tests). Each is a zero-argument factory.
     presets: ClassVar[dict[str, Callable[[], Any]]] = {}
 
-    def __init__(self, config: Any):
-        self.config = config
+    def __init__(self, config: Any = None):
+        self.config = config if config is not None else self.presets["default"]()
 
     @abstractmethod
+    def arch(self) -> dict:
+        """{"name": network, "kwargs": {...}} for `fields.build_module` (saved with the weights)."""
+
+    @abstractmethod
+    def setup(self, module: torch.nn.Module, points_unit: np.ndarray, device: torch.device) -> None:
+        """Prepare everything sampled once (queries, labels, generators) for (N, 3) unit-frame points."""
+
+    def get_param_groups(self, module: torch.nn.Module) -> list[dict]:
+        """Optimiser groups [{"params": ..., "base_lr": ...}]; default: one group at schedule.lr."""
+        return [{"params": module.parameters(), "base_lr": self.config.schedule.lr}]
+
+    @abstractmethod
+    def get_loss_dict(self, module: torch.nn.Module, step: int) -> dict[str, torch.Tensor]:
+        """Named, weighted scalar loss terms of one step; the loop minimises their sum."""
+
+    def surface_level(self, fitted: FittedField, points_unit: np.ndarray) -> float:
+        """Iso-value of `inside_score` that is the surface (default 0)."""
+        return 0.0
+
+    def config_dict(self) -> dict:
+        """The config as a plain (nested) dict, saved in model.json."""
+        return asdict(self.config)
+
     def fit(
         self,
         points_unit: np.ndarray,
@@ -123,8 +153,10 @@ class Method(ABC):
         progress: ProgressFn | None = None,
         should_cancel: CancelFn | None = None,
     ) -> FittedField:
-        """Fit to (N, 3) float unit-frame points; return the field. Must call `check_cancel`
-        at least every few iterations and `progress` about once a second."""
+        """Fit to (N, 3) float unit-frame points with the shared training loop; return the field."""
+        from .training import train
+
+        return train(self, points_unit, device, progress, should_cancel)
 
 
 # --- shared training helpers -------------------------------------------------------------------

@@ -24,16 +24,15 @@ When w_div is 0 (the last 60 % of the schedule) the second derivatives are not c
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 import numpy as np
 import torch
 
-from ..fields.siren import SirenMLP
-from .base import CancelFn, FittedField, Method, ProgressFn, ProgressThrottle, check_cancel, seed_everything
+from .base import Method
+from .training import ScheduleConfig
 
 # --- DiGS loss terms (public code Chumbyte/DiGS, models/losses.py; unit frame) --------------------
 
@@ -103,16 +102,17 @@ def divergence_weight(
 class DiGSConfig:
     """DiGS schedule, loss weights and SIREN (unit frame).
 
+    schedule: iterations, constant Adam rate, gradient-norm clip (training.ScheduleConfig).
     n_surface / n_uniform: on-surface points drawn from the input (without replacement, all of them
     when fewer) and uniform points in [-uniform_range, uniform_range]^3 per iteration.
     w_manifold, w_off, off_alpha, w_eikonal, w_div: loss weights (w_div is the start of the anneal,
     held until div_hold_until of training and 0 from div_zero_from on). div_clamp: (min, max) of
-    |div grad f|. lr: constant Adam rate; grad_clip: max gradient norm.
+    |div grad f|.
     hidden, hidden_layers, omega, init, sphere_radius, sphere_scale: `SirenMLP(...)` (DiGS's surface
     reconstruction script: 256, 4, 30, "mfgi", 1.6, 0.1).
     """
 
-    iterations: int = 10_000
+    schedule: ScheduleConfig = field(default_factory=lambda: _digs_schedule(10_000, 5e-5))
     n_surface: int = 15_000
     n_uniform: int = 15_000
     uniform_range: float = 1.1
@@ -124,8 +124,6 @@ class DiGSConfig:
     div_hold_until: float = 0.2
     div_zero_from: float = 0.4
     div_clamp: tuple[float, float] = (0.1, 50.0)
-    lr: float = 5e-5
-    grad_clip: float = 10.0
     hidden: int = 256
     hidden_layers: int = 4
     omega: float = 30.0
@@ -135,7 +133,16 @@ class DiGSConfig:
     periods: list[float] = field(default_factory=lambda: [1.0, 30.0])
     period_portions: list[float] = field(default_factory=lambda: [0.25, 0.75])
     seed: int = 0
-    history_points: int = 500
+
+    @property
+    def iterations(self) -> int:
+        """The schedule's length (shorthand for schedule.iterations)."""
+        return self.schedule.iterations
+
+
+def _digs_schedule(iterations: int, lr: float) -> ScheduleConfig:
+    """DiGS's optimiser: constant Adam rate, gradient norm clipped at 10."""
+    return ScheduleConfig(iterations=iterations, lr=lr, decay="constant", grad_clip=10.0)
 
 
 def _paper() -> DiGSConfig:
@@ -150,25 +157,23 @@ def _default() -> DiGSConfig:
     99 % of points 1 mm inside / outside the true surface, no inside volume >10 mm from it, mean
     |f| 0.33 mm on it; lr 5e-5 gave 77 % / 86 %, 26 % and 0.49 mm. ~0.5 s per iteration on one core
     while the divergence term is on (first 40 %), ~0.17 s after: ~10 min of one core."""
-    return DiGSConfig(iterations=2_000, n_surface=2_000, n_uniform=2_000, lr=1e-4)
+    return DiGSConfig(schedule=_digs_schedule(2_000, 1e-4), n_surface=2_000, n_uniform=2_000)
 
 
 def _smoke() -> DiGSConfig:
     """Seconds, for tests: SIREN 64 wide with 2 hidden layers, 500 + 500 points, 100 iterations
     (~10-20 ms each on one core). The learning rate is raised to 1e-4 so the short schedule moves
     the init sphere."""
-    return DiGSConfig(iterations=100, n_surface=500, n_uniform=500, hidden=64, hidden_layers=2, lr=1e-4)
+    return DiGSConfig(schedule=_digs_schedule(100, 1e-4), n_surface=500, n_uniform=500, hidden=64, hidden_layers=2)
 
 
 class DiGS(Method):
     """DiGS: SIREN + eikonal + divergence-annealed SDF fitting without normals."""
 
     name = "digs"
+    kind = "sdf"
     config_class = DiGSConfig
     presets: ClassVar[dict[str, Callable[[], Any]]] = {"paper": _paper, "default": _default, "smoke": _smoke}
-
-    def __init__(self, config: DiGSConfig | None = None):
-        super().__init__(config if config is not None else _default())
 
     def arch(self) -> dict:
         """The `FittedField.arch` of this config's network (exact constructor kwargs)."""
@@ -189,77 +194,31 @@ class DiGS(Method):
             },
         }
 
-    def fit(
-        self,
-        points_unit: np.ndarray,
-        device: torch.device,
-        progress: ProgressFn | None = None,
-        should_cancel: CancelFn | None = None,
-    ) -> FittedField:
-        c = self.config
-        t0 = time.perf_counter()
-        device = torch.device(device)
-        points = np.asarray(points_unit, dtype=np.float32).reshape(-1, 3)
-        if len(points) < 1:
+    def setup(self, module: torch.nn.Module, points_unit: np.ndarray, device: torch.device) -> None:
+        if len(points_unit) < 1:
             raise ValueError("DiGS needs at least 1 input point")
-        seed_everything(c.seed)
-        rng = np.random.default_rng(c.seed)
+        self.rng = np.random.default_rng(self.config.seed)
+        self.points = torch.from_numpy(points_unit.astype(np.float32)).to(device)
+        self.n_on = min(int(self.config.n_surface), len(points_unit))
 
-        arch = self.arch()
-        net = SirenMLP(**arch["kwargs"]).to(device)
-        net.train()
-        opt = torch.optim.Adam(net.parameters(), lr=c.lr)
-        points_t = torch.from_numpy(points).to(device)
-        n_on = min(int(c.n_surface), len(points))
-        lo, hi = c.div_clamp
-
-        throttle = ProgressThrottle(progress, c.iterations)
-        window = max(1, c.iterations // max(1, c.history_points))
-        history: list[float] = []
-        acc, acc_n = 0.0, 0
-        for it in range(c.iterations):
-            if it % 10 == 0:
-                check_cancel(should_cancel)
-            w_div = divergence_weight(it, c.iterations, c.w_div, c.div_hold_until, c.div_zero_from)
-            on_idx = torch.from_numpy(rng.choice(len(points), n_on, replace=False)).to(device)
-            x_on = points_t[on_idx].requires_grad_(True)
-            off = rng.uniform(-c.uniform_range, c.uniform_range, size=(int(c.n_uniform), 3)).astype(np.float32)
-            x_off = torch.from_numpy(off).to(device).requires_grad_(True)
-
-            # separate passes so the second derivatives only run through the off-surface batch
-            f_on = net(x_on).reshape(-1)
-            f_off = net(x_off).reshape(-1)
-            g_on = spatial_gradient(f_on, x_on, create_graph=True)
-            g_off = spatial_gradient(f_off, x_off, create_graph=True)
-            loss = (
-                c.w_manifold * digs_manifold_loss(f_on)
-                + c.w_off * digs_off_surface_loss(f_off, c.off_alpha)
-                + c.w_eikonal * eikonal_l1_loss(torch.cat([g_off, g_on], 0))
-            )
-            if w_div > 0:
-                loss = loss + w_div * divergence_loss(laplacian(g_off, x_off, create_graph=True), lo, hi)
-
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            torch.nn.utils.clip_grad_norm_(net.parameters(), c.grad_clip)
-            opt.step()
-
-            value = float(loss.detach())
-            acc, acc_n = acc + value, acc_n + 1
-            if acc_n == window or it + 1 == c.iterations:
-                history.append(acc / acc_n)
-                acc, acc_n = 0.0, 0
-            throttle(it, value, f"digs (w_div={w_div:.3g})")
-
-        net.eval()
-        return FittedField(
-            module=net,
-            kind="sdf",
-            arch=arch,
-            level=0.0,
-            method=self.name,
-            config=asdict(c),
-            iterations_run=c.iterations,
-            fit_seconds=time.perf_counter() - t0,
-            loss_history=history,
-        )
+    def get_loss_dict(self, module: torch.nn.Module, step: int) -> dict[str, torch.Tensor]:
+        c = self.config
+        device = self.points.device
+        w_div = divergence_weight(step, c.schedule.iterations, c.w_div, c.div_hold_until, c.div_zero_from)
+        on_idx = torch.from_numpy(self.rng.choice(len(self.points), self.n_on, replace=False)).to(device)
+        x_on = self.points[on_idx].requires_grad_(True)
+        off = self.rng.uniform(-c.uniform_range, c.uniform_range, size=(int(c.n_uniform), 3)).astype(np.float32)
+        x_off = torch.from_numpy(off).to(device).requires_grad_(True)
+        # separate passes so the second derivatives only run through the off-surface batch
+        f_on = module(x_on).reshape(-1)
+        f_off = module(x_off).reshape(-1)
+        g_on = spatial_gradient(f_on, x_on, create_graph=True)
+        g_off = spatial_gradient(f_off, x_off, create_graph=True)
+        terms = {
+            "manifold": c.w_manifold * digs_manifold_loss(f_on),
+            "off_surface": c.w_off * digs_off_surface_loss(f_off, c.off_alpha),
+            "eikonal": c.w_eikonal * eikonal_l1_loss(torch.cat([g_off, g_on], 0)),
+        }
+        if w_div > 0:  # the second derivatives are only computed while the term is on
+            terms["divergence"] = w_div * divergence_loss(laplacian(g_off, x_off, create_graph=True), *c.div_clamp)
+        return terms

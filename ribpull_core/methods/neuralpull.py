@@ -19,27 +19,16 @@ therefore spreads the queries wider (see `_default`).
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 import numpy as np
 import torch
 
-from ..fields.mlp import NeuralPullMLP
 from ..losses import pull_to_surface, sampling_loss
-from .base import (
-    CancelFn,
-    FittedField,
-    Method,
-    ProgressFn,
-    ProgressThrottle,
-    check_cancel,
-    sample_pull_queries,
-    seed_everything,
-    warmup_cosine_lr,
-)
+from .base import Method, sample_pull_queries
+from .training import ScheduleConfig
 
 
 def neural_pull_loss(pulled: torch.Tensor, nearest_input: torch.Tensor) -> torch.Tensor:
@@ -57,21 +46,18 @@ def sdf_gradient(f: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
 
 @dataclass
 class NeuralPullConfig:
-    """Neural-Pull schedule and network (unit frame).
+    """Neural-Pull network, queries and schedule (unit frame).
 
-    iterations, batch_size: optimiser steps and queries per step. lr, warmup: Adam base rate, linear
-    warm-up steps before cosine decay to 0. total_queries: queries sampled once before training
-    (each input point spawns round(total_queries / N)). knn_k: neighbour for the local scale sigma;
+    schedule: iterations, Adam base rate, linear warm-up then cosine decay to 0 (training.ScheduleConfig).
+    batch_size: queries per step. total_queries: queries sampled once before training (each input
+    point spawns round(total_queries / N)). knn_k: neighbour for the local scale sigma;
     query_scale: multiplier of sigma (None: 0.25 sqrt(N / 20000) as in the reference code).
     hidden, layers, skip, init_radius, use_weight_norm: `NeuralPullMLP(out_dim=1, ...)`; init_radius 1.0 in
     RibPull's [-1, 1] frame = the reference's 0.5 in its [-0.5, 0.5] frame. skip must be < layers.
-    history_points: about how many (window-averaged) losses `loss_history` keeps.
     """
 
-    iterations: int = 40_000
+    schedule: ScheduleConfig = field(default_factory=lambda: ScheduleConfig(iterations=40_000, lr=1e-3, warmup=1_000))
     batch_size: int = 5_000
-    lr: float = 1e-3
-    warmup: int = 1_000
     total_queries: int = 1_000_000
     knn_k: int = 50
     query_scale: float | None = None
@@ -81,7 +67,11 @@ class NeuralPullConfig:
     init_radius: float = 1.0
     use_weight_norm: bool = True
     seed: int = 0
-    history_points: int = 500
+
+    @property
+    def iterations(self) -> int:
+        """The schedule's length (shorthand for schedule.iterations)."""
+        return self.schedule.iterations
 
 
 def _paper() -> NeuralPullConfig:
@@ -101,25 +91,22 @@ def _default() -> NeuralPullConfig:
     Cost: ~0.3 s per iteration on one core of the 2-core dev machine (~0.19 s with 2 threads on an
     idle machine), ~10 min. Smaller MLPs (8x128, 6x128, 4x128, 4x64) at the same CPU budget were not
     better on the phantom, so the reference network is kept."""
-    return NeuralPullConfig(iterations=2_000, warmup=100, query_scale=2.0)
+    return NeuralPullConfig(schedule=ScheduleConfig(iterations=2_000, lr=1e-3, warmup=100), query_scale=2.0)
 
 
 def _smoke() -> NeuralPullConfig:
     """Seconds, for tests: 4 x 64 MLP (skip at layer 2), 100 iterations of 1k queries (~5 ms each)."""
-    return NeuralPullConfig(
-        iterations=100, batch_size=1_000, warmup=5, lr=1e-3, total_queries=50_000, hidden=64, layers=4, skip=2
-    )
+    return NeuralPullConfig(schedule=ScheduleConfig(iterations=100, lr=1e-3, warmup=5), batch_size=1_000,
+                            total_queries=50_000, hidden=64, layers=4, skip=2)
 
 
 class NeuralPull(Method):
     """Neural-Pull: pull queries onto the zero set of a learned signed distance."""
 
     name = "neuralpull"
+    kind = "sdf"
     config_class = NeuralPullConfig
     presets: ClassVar[dict[str, Callable[[], Any]]] = {"paper": _paper, "default": _default, "smoke": _smoke}
-
-    def __init__(self, config: NeuralPullConfig | None = None):
-        super().__init__(config if config is not None else _default())
 
     def arch(self) -> dict:
         """The `FittedField.arch` of this config's network (exact constructor kwargs)."""
@@ -138,69 +125,20 @@ class NeuralPull(Method):
             },
         }
 
-    def fit(
-        self,
-        points_unit: np.ndarray,
-        device: torch.device,
-        progress: ProgressFn | None = None,
-        should_cancel: CancelFn | None = None,
-    ) -> FittedField:
+    def setup(self, module: torch.nn.Module, points_unit: np.ndarray, device: torch.device) -> None:
+        """Sample the queries once and keep each one's nearest input point as its target."""
         c = self.config
-        t0 = time.perf_counter()
-        device = torch.device(device)
-        points = np.asarray(points_unit, dtype=np.float64).reshape(-1, 3)
-        if len(points) < 2:
+        if len(points_unit) < 2:
             raise ValueError("Neural-Pull needs at least 2 input points")
-        seed_everything(c.seed)
-        rng = np.random.default_rng(c.seed)
+        self.rng = np.random.default_rng(c.seed)
+        queries, nn_idx = sample_pull_queries(points_unit, c.total_queries, self.rng, k=c.knn_k, scale=c.query_scale)
+        self.queries = torch.from_numpy(queries).to(device)
+        self.targets = torch.from_numpy(points_unit.astype(np.float32)[nn_idx]).to(device)
+        self.batch = min(int(c.batch_size), len(queries))
 
-        arch = self.arch()
-        net = NeuralPullMLP(**arch["kwargs"]).to(device)
-        net.train()
-        opt = torch.optim.Adam(net.parameters(), lr=c.lr)
-
-        check_cancel(should_cancel)
-        queries, nn_idx = sample_pull_queries(points, c.total_queries, rng, k=c.knn_k, scale=c.query_scale)
-        queries_t = torch.from_numpy(queries).to(device)
-        targets_t = torch.from_numpy(points.astype(np.float32)[nn_idx]).to(device)
-        n_q = len(queries)
-        batch = min(int(c.batch_size), n_q)
-
-        throttle = ProgressThrottle(progress, c.iterations)
-        window = max(1, c.iterations // max(1, c.history_points))
-        history: list[float] = []
-        acc, acc_n = 0.0, 0
-        for it in range(c.iterations):
-            if it % 10 == 0:
-                check_cancel(should_cancel)
-            for g in opt.param_groups:
-                g["lr"] = warmup_cosine_lr(it, c.iterations, c.lr, c.warmup)
-            idx = torch.from_numpy(rng.integers(0, n_q, size=batch)).to(device)
-            q = queries_t[idx].requires_grad_(True)
-            f = net(q).reshape(-1)
-            grad = sdf_gradient(f, q)
-            pulled = pull_to_surface(q, f, grad)
-            loss = neural_pull_loss(pulled, targets_t[idx])
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-
-            value = float(loss.detach())
-            acc, acc_n = acc + value, acc_n + 1
-            if acc_n == window or it + 1 == c.iterations:
-                history.append(acc / acc_n)
-                acc, acc_n = 0.0, 0
-            throttle(it, value, "neural-pull")
-
-        net.eval()
-        return FittedField(
-            module=net,
-            kind="sdf",
-            arch=arch,
-            level=0.0,
-            method=self.name,
-            config=asdict(c),
-            iterations_run=c.iterations,
-            fit_seconds=time.perf_counter() - t0,
-            loss_history=history,
-        )
+    def get_loss_dict(self, module: torch.nn.Module, step: int) -> dict[str, torch.Tensor]:
+        idx = torch.from_numpy(self.rng.integers(0, len(self.queries), size=self.batch)).to(self.queries.device)
+        q = self.queries[idx].requires_grad_(True)
+        f = module(q).reshape(-1)
+        pulled = pull_to_surface(q, f, sdf_gradient(f, q))
+        return {"pull": neural_pull_loss(pulled, self.targets[idx])}

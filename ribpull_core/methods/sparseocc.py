@@ -18,8 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import time
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from typing import ClassVar
 
 import numpy as np
@@ -27,7 +26,6 @@ import torch
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from ..fields import build_module
 from ..losses import (
     margin_uncertainty,
     minimax_entropy_loss,
@@ -36,42 +34,15 @@ from ..losses import (
     sampling_loss,
     sign_margin_loss,
 )
-from .base import (
-    CancelFn,
-    FittedField,
-    Method,
-    ProgressFn,
-    ProgressThrottle,
-    check_cancel,
-    knn_sigma,
-    sample_pull_queries,
-    seed_everything,
-    warmup_cosine_lr,
-)
+from .base import FittedField, Method, knn_sigma, sample_pull_queries
+from .training import ScheduleConfig
 
 
 @dataclass
-class SparseOccConfig:
-    """SparseOcc training configuration (unit-frame lengths: the input's longest side spans 2).
+class FieldConfig:
+    """The network. network: "mlp" (the Neural-Pull 8x256 MLP, `mlp_*`) or "grid"
+    (GridOccupancyField, `grid_*`; grid_lr is the tables' Adam rate, the decoder uses schedule.lr)."""
 
-    network: "mlp" (the Neural-Pull 8x256 MLP) or "grid" (GridOccupancyField).
-    gradient: how grad U is computed for the pull — "autograd" (exact, double backward) or
-        "finite_difference" (central differences with step fd_step).
-    query_scales: multipliers of the Neural-Pull query spread (0.25*sqrt(N/20000)*sigma_50);
-        several values give multi-scale queries, split evenly.
-    query_jitter: (start, end) std of Gaussian jitter added to queries each iteration, decaying
-        linearly (RibPull's ribcage script: 0.05 -> 0.01); (0, 0) disables it.
-    free_space_weight: weight of the free-space (outside) cross-entropy; 0 disables it.
-    near_surface_weight: weight of the near-surface inside/outside cross-entropy at input points
-        -/+ near_surface_offset (x flood-fill spacing) along flood-fill-oriented normals; 0 disables.
-    gradient "finite_difference" uses forward differences (3 extra evaluations per query).
-    early_stop_window: iterations per window of the convergence test (0 disables); training stops
-        when the mean loss of the last window improved by less than early_stop_rel_tol relative to the
-        previous window, after at least early_stop_min_fraction of the schedule.
-    """
-
-    iterations: int = 20_000
-    batch_size: int = 5000
     network: str = "mlp"
     mlp_hidden: int = 256
     mlp_layers: int = 8
@@ -81,32 +52,79 @@ class SparseOccConfig:
     grid_base_resolution: int = 16
     grid_max_resolution: int = 512
     grid_hidden: int = 64
-    lr: float = 1e-3
     grid_lr: float = 1e-2
-    warmup: int = 1000
-    final_lr_ratio: float = 0.0
+
+
+@dataclass
+class QueryConfig:
+    """Eq. 1's pull queries (unit frame: the input's longest side spans 2).
+
+    n_queries: sampled once (Neural-Pull: p + s*sigma_knn*N(0, I), s = 0.25*sqrt(N/20000));
+    scales: multipliers of s, several values give multi-scale queries, split evenly.
+    batch_size: queries per step. jitter: (start, end) std of Gaussian jitter added each step,
+    decaying linearly (RibPull's ribcage script: 0.05 -> 0.01); (0, 0) disables it.
+    gradient: grad U by "autograd" (double backward) or "finite_difference" (forward differences,
+    3 extra evaluations per query, step = the finest grid cell for grids, else fd_step).
+    sampling_weight: weight of eq. 1's loss. max_input_points: inputs are subsampled to this.
+    """
+
     n_queries: int = 1_000_000
     knn: int = 50
-    query_scales: tuple[float, ...] = (1.0,)
-    query_jitter: tuple[float, float] = (0.05, 0.01)
-    sampling_weight: float = 10.0
+    scales: tuple[float, ...] = (1.0,)
+    batch_size: int = 5000
+    jitter: tuple[float, float] = (0.05, 0.01)
     gradient: str = "autograd"
     fd_step: float = 0.005
-    entropy_input_points: int = 1000
-    entropy_uniform_points: int = 10_000
+    sampling_weight: float = 10.0
+    max_input_points: int = 200_000
+
+
+@dataclass
+class EntropyConfig:
+    """Eq. 2's minimax entropy: lambda_min x mean H at uniform_points points of the padded bounding
+    box minus lambda_max x mean H at input_points input points, weight 10^(-8 i / n_minimax)."""
+
+    input_points: int = 1000
+    uniform_points: int = 10_000
     lambda_max: float = 10.0
     lambda_min: float = 1.0
     n_minimax: int = 1000
+
+
+@dataclass
+class SignConfig:
+    """RibPull's data-derived sign supervision (0 weights disable it; see `space_labels`).
+
+    free_space_weight / free_space_points: hinge "outside" at points a flood fill reaches from the
+    border without crossing the dilated input. near_surface_weight / near_surface_points: hinges
+    inside / outside at input points -/+ near_surface_offset (x the flood-fill spacing) along
+    flood-fill-oriented normals.
+    """
+
     free_space_weight: float = 0.0
     free_space_points: int = 5000
     near_surface_weight: float = 0.0
     near_surface_points: int = 2048
     near_surface_offset: float = 0.5
-    early_stop_window: int = 0
-    early_stop_rel_tol: float = 0.01
-    early_stop_min_fraction: float = 0.3
-    max_input_points: int = 200_000
+
+
+@dataclass
+class SparseOccConfig:
+    """SparseOcc training configuration, nested by concern: field (network), queries (eq. 1),
+    entropy (eq. 2), sign (RibPull's supervision), schedule (the shared loop's optimiser schedule)."""
+
+    field: FieldConfig = dataclasses.field(default_factory=FieldConfig)
+    queries: QueryConfig = dataclasses.field(default_factory=QueryConfig)
+    entropy: EntropyConfig = dataclasses.field(default_factory=EntropyConfig)
+    sign: SignConfig = dataclasses.field(default_factory=SignConfig)
+    schedule: ScheduleConfig = dataclasses.field(
+        default_factory=lambda: ScheduleConfig(iterations=20_000, lr=1e-3, warmup=1000))
     seed: int = 0
+
+    @property
+    def iterations(self) -> int:
+        """The schedule's length (shorthand for schedule.iterations)."""
+        return self.schedule.iterations
 
 
 def paper_config() -> SparseOccConfig:
@@ -119,44 +137,25 @@ def default_config() -> SparseOccConfig:
     sign supervision (free space and near-surface hinges), multi-scale queries, early stopping.
     Measured on the phantom in docs/benchmarks.md."""
     return SparseOccConfig(
-        iterations=1000,
-        batch_size=2048,
-        network="grid",
-        grid_levels=8,
-        grid_log2_table=18,
-        grid_max_resolution=256,
-        gradient="finite_difference",
-        lr=2e-3,
-        grid_lr=2e-2,
-        warmup=30,
-        final_lr_ratio=0.05,
-        n_queries=400_000,
-        query_scales=(0.5, 1.0, 2.0),
-        query_jitter=(0.0, 0.0),
-        entropy_input_points=1000,
-        entropy_uniform_points=1000,
-        lambda_max=1.0,
-        n_minimax=200,
-        free_space_weight=10.0,
-        free_space_points=2048,
-        near_surface_weight=10.0,
-        near_surface_points=4096,
-        early_stop_window=100,
-        early_stop_rel_tol=0.005,
-        early_stop_min_fraction=0.6,
+        field=FieldConfig(network="grid", grid_levels=8, grid_log2_table=18, grid_max_resolution=256, grid_lr=2e-2),
+        queries=QueryConfig(n_queries=400_000, scales=(0.5, 1.0, 2.0), batch_size=2048, jitter=(0.0, 0.0),
+                            gradient="finite_difference"),
+        entropy=EntropyConfig(input_points=1000, uniform_points=1000, lambda_max=1.0, n_minimax=200),
+        sign=SignConfig(free_space_weight=10.0, free_space_points=2048, near_surface_weight=10.0,
+                        near_surface_points=4096),
+        schedule=ScheduleConfig(iterations=1000, lr=2e-3, warmup=30, final_lr_ratio=0.05, early_stop_window=100,
+                                early_stop_rel_tol=0.005, early_stop_min_fraction=0.6),
     )
 
 
 def smoke_config() -> SparseOccConfig:
     """A short `default` (tens of seconds on a CPU): coarse but correct surfaces, for tests and CI."""
+    c = default_config()
     return dataclasses.replace(
-        default_config(),
-        iterations=250,
-        batch_size=1024,
-        n_queries=100_000,
-        free_space_points=1024,
-        near_surface_points=2048,
-        early_stop_window=0,
+        c,
+        queries=dataclasses.replace(c.queries, n_queries=100_000, batch_size=1024),
+        sign=dataclasses.replace(c.sign, free_space_points=1024, near_surface_points=2048),
+        schedule=dataclasses.replace(c.schedule, iterations=250, early_stop_window=0),
     )
 
 
@@ -250,175 +249,155 @@ def space_labels(points_unit: np.ndarray, rng: np.random.Generator, n_free: int 
 # --- the method ------------------------------------------------------------------------------
 
 
-def _arch(cfg: SparseOccConfig) -> dict:
-    if cfg.network == "mlp":
-        return {"name": "NeuralPullMLP", "kwargs": {"out_dim": 2, "hidden": cfg.mlp_hidden, "layers": cfg.mlp_layers}}
-    if cfg.network == "grid":
+def _arch(f: FieldConfig) -> dict:
+    if f.network == "mlp":
+        return {"name": "NeuralPullMLP", "kwargs": {"out_dim": 2, "hidden": f.mlp_hidden, "layers": f.mlp_layers}}
+    if f.network == "grid":
         return {
             "name": "GridOccupancyField",
             "kwargs": {
-                "n_levels": cfg.grid_levels,
-                "features": cfg.grid_features,
-                "log2_table": cfg.grid_log2_table,
-                "base_resolution": cfg.grid_base_resolution,
-                "max_resolution": cfg.grid_max_resolution,
-                "hidden": cfg.grid_hidden,
+                "n_levels": f.grid_levels,
+                "features": f.grid_features,
+                "log2_table": f.grid_log2_table,
+                "base_resolution": f.grid_base_resolution,
+                "max_resolution": f.grid_max_resolution,
+                "hidden": f.grid_hidden,
             },
         }
-    raise ValueError(f"unknown network {cfg.network!r}")
+    raise ValueError(f"unknown network {f.network!r}")
 
 
 def margin_and_gradient(module: torch.nn.Module, q: torch.Tensor, method: str, fd_step: float):
     """U(q) (B,) and grad U(q) (B, 3), differentiable w.r.t. the weights.
 
-    "autograd": exact gradient through a double backward. "finite_difference": central differences
-    (6 extra evaluations) — cheaper for grid encodings and smoother across grid cells."""
+    "autograd": exact gradient through a double backward. "finite_difference": forward differences
+    (3 extra evaluations) — cheaper for grid encodings and smoother across grid cells."""
     if method == "autograd":
         q = q.requires_grad_(True)
         u = margin_uncertainty(module(q))
         (g,) = torch.autograd.grad(u.sum(), q, create_graph=True)
         return u, g
     eye = torch.eye(3, dtype=q.dtype, device=q.device) * fd_step
-    stacked = torch.cat([q, (q[:, None, :] + eye).reshape(-1, 3)])
-    u_all = margin_uncertainty(module(stacked))
+    u_all = margin_uncertainty(module(torch.cat([q, (q[:, None, :] + eye).reshape(-1, 3)])))
     b = q.shape[0]
     u = u_all[:b]
-    g = (u_all[b:].view(b, 3) - u[:, None]) / fd_step
-    return u, g
+    return u, (u_all[b:].view(b, 3) - u[:, None]) / fd_step
 
 
 class SparseOcc(Method):
-    """SparseOcc occupancy fitting (paper eq. 1-2) with RibPull's optional free-space term."""
+    """SparseOcc occupancy fitting (paper eq. 1-2) with RibPull's optional sign supervision.
+
+    Loss terms (get_loss_dict): "sampling" (eq. 1), "entropy" (eq. 2, while its weight is on),
+    "free_space" and "near_surface" (RibPull's hinges, when enabled)."""
 
     name = "sparseocc"
+    kind = "occupancy"
     config_class = SparseOccConfig
     presets: ClassVar[dict] = {"paper": paper_config, "default": default_config, "smoke": smoke_config}
 
-    def fit(self, points_unit: np.ndarray, device: torch.device, progress: ProgressFn | None = None,
-            should_cancel: CancelFn | None = None) -> FittedField:
+    def arch(self) -> dict:
+        return _arch(self.config.field)
+
+    def setup(self, module: torch.nn.Module, points_unit: np.ndarray, device: torch.device) -> None:
+        """Queries and their targets, the sign labels and the entropy box, sampled once."""
         cfg: SparseOccConfig = self.config
-        t0 = time.perf_counter()
-        seed_everything(cfg.seed)
         rng = np.random.default_rng(cfg.seed)
         pts = np.asarray(points_unit, dtype=np.float64)
-        if len(pts) > cfg.max_input_points:  # the loss only needs a dense enough sample
-            pts = pts[rng.choice(len(pts), cfg.max_input_points, replace=False)]
+        if len(pts) > cfg.queries.max_input_points:  # the loss only needs a dense enough sample
+            pts = pts[rng.choice(len(pts), cfg.queries.max_input_points, replace=False)]
+        self.points = pts
         queries, nearest = self._queries(pts, rng)
-        q_all = torch.from_numpy(queries).to(device)
-        target_all = torch.from_numpy(pts.astype(np.float32)).to(device)[torch.from_numpy(nearest).to(device)]
+        self.q_all = torch.from_numpy(queries).to(device)
         pts_t = torch.from_numpy(pts.astype(np.float32)).to(device)
-        labels = space_labels(pts, rng, offset_fraction=cfg.near_surface_offset) if (cfg.free_space_weight > 0 or cfg.near_surface_weight > 0) else None
-        free = torch.from_numpy(labels.free).to(device) if labels is not None and cfg.free_space_weight > 0 else None
-        # hinge margins: half the distance to the data (free space, capped) and half the normal offset
-        free_margin = torch.from_numpy(np.minimum(0.5 * labels.free_distance, 0.5)).to(device) if free is not None else None
-        near_margin = 0.5 * labels.offset if labels is not None else 0.0
-        near = (torch.from_numpy(np.concatenate([labels.near_in, labels.near_out])).to(device)
-                if labels is not None and cfg.near_surface_weight > 0 else None)
-        lo = torch.from_numpy(pts.min(0).astype(np.float32)).to(device) - 0.05
-        hi = torch.from_numpy(pts.max(0).astype(np.float32)).to(device) + 0.05
+        self.target_all = pts_t[torch.from_numpy(nearest).to(device)]
+        self.pts_t = pts_t
+        s = cfg.sign
+        self.free = self.near = None
+        if s.free_space_weight > 0 or s.near_surface_weight > 0:
+            labels = space_labels(pts, rng, offset_fraction=s.near_surface_offset)
+            if s.free_space_weight > 0 and len(labels.free):
+                self.free = torch.from_numpy(labels.free).to(device)
+                # hinge margins: half the distance to the data (capped) and half the normal offset
+                self.free_margin = torch.from_numpy(np.minimum(0.5 * labels.free_distance, 0.5)).to(device)
+            if s.near_surface_weight > 0:
+                self.near = torch.from_numpy(np.concatenate([labels.near_in, labels.near_out])).to(device)
+                self.near_margin = 0.5 * labels.offset
+        self.lo = torch.from_numpy(pts.min(0).astype(np.float32)).to(device) - 0.05
+        self.hi = torch.from_numpy(pts.max(0).astype(np.float32)).to(device) + 0.05
+        self.grid = cfg.field.network == "grid"
+        self.fd_step = module.finest_cell if self.grid and cfg.queries.gradient == "finite_difference" else cfg.queries.fd_step
+        self.gen = torch.Generator(device=device).manual_seed(cfg.seed)
 
-        arch = _arch(cfg)
-        module = build_module(arch).to(device)
-        if cfg.network == "grid":
-            groups = [{"params": module.embedding.parameters(), "base_lr": cfg.grid_lr},
-                      {"params": module.decoder.parameters(), "base_lr": cfg.lr}]
-            fd_step = module.finest_cell if cfg.gradient == "finite_difference" else cfg.fd_step
-        else:
-            groups = [{"params": module.parameters(), "base_lr": cfg.lr}]
-            fd_step = cfg.fd_step
-        for g in groups:
-            g["lr"] = g["base_lr"]
-        opt = torch.optim.Adam(groups, lr=cfg.lr, fused=(device.type == "cpu"))
-        gen = torch.Generator(device=device).manual_seed(cfg.seed)
-        report = ProgressThrottle(progress, cfg.iterations)
-        history: list[float] = []
-        window_means: list[float] = []
-        it = 0
-        for it in range(cfg.iterations):
-            if it % 10 == 0:
-                check_cancel(should_cancel)
-            for g in groups:
-                g["lr"] = warmup_cosine_lr(it, cfg.iterations, g["base_lr"], cfg.warmup, cfg.final_lr_ratio)
-            loss = self._step_loss(module, it, q_all, target_all, pts_t, (free, free_margin), (near, near_margin), lo, hi, fd_step, gen)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            lv = float(loss.detach())
-            history.append(lv)
-            report(it, lv)
-            if self._converged(history, window_means, it):
-                break
-        iterations_run = it + 1
-        fitted = FittedField(module=module.eval(), kind="occupancy", arch=arch, method=self.name, config=asdict(cfg),
-                             iterations_run=iterations_run, fit_seconds=time.perf_counter() - t0,
-                             loss_history=history[:: max(1, len(history) // 500)])
-        # RibPull meshes at the median of U over the input points (paper, Figure 3 caption)
-        fitted.level = float(np.median(fitted.evaluate(pts.astype(np.float32))["U"]))
-        return fitted
+    def get_param_groups(self, module: torch.nn.Module) -> list[dict]:
+        lr = self.config.schedule.lr
+        if self.grid:
+            return [{"params": module.embedding.parameters(), "base_lr": self.config.field.grid_lr},
+                    {"params": module.decoder.parameters(), "base_lr": lr}]
+        return [{"params": module.parameters(), "base_lr": lr}]
 
-    def _step_loss(self, module, it, q_all, target_all, pts_t, free_and_margin, near_and_margin, lo, hi, fd_step, gen) -> torch.Tensor:
-        """Total loss of one iteration. All points of the iteration go through the network in ONE
-        forward pass (on a CPU the per-call overhead dominates small batches), then each term takes
-        its slice: pull queries (+ finite-difference probes), entropy points, free space, near surface."""
+    def get_loss_dict(self, module: torch.nn.Module, step: int) -> dict[str, torch.Tensor]:
+        """All points of the step go through the network in ONE forward pass (on a CPU the per-call
+        overhead dominates small batches), then each term takes its slice: pull queries
+        (+ finite-difference probes), entropy points, free space, near surface."""
         cfg: SparseOccConfig = self.config
-        (free, free_margin), (near, near_margin) = free_and_margin, near_and_margin
-        device = q_all.device
-        idx = torch.randint(0, len(q_all), (cfg.batch_size,), device=device, generator=gen)
-        q, target = q_all[idx], target_all[idx]
-        j0, j1 = cfg.query_jitter
+        qc, ec, sc = cfg.queries, cfg.entropy, cfg.sign
+        device, gen = self.q_all.device, self.gen
+        idx = torch.randint(0, len(self.q_all), (qc.batch_size,), device=device, generator=gen)
+        q, target = self.q_all[idx], self.target_all[idx]
+        j0, j1 = qc.jitter
         if j0 > 0 or j1 > 0:
-            q = q + (j0 + (j1 - j0) * it / max(1, cfg.iterations - 1)) * torch.randn(q.shape, device=device, generator=gen)
-        if cfg.gradient == "autograd":
-            u, grad_u = margin_and_gradient(module, q.clone(), "autograd", fd_step)
-            parts: dict[str, torch.Tensor] = {}
+            frac = step / max(1, cfg.schedule.iterations - 1)
+            q = q + (j0 + (j1 - j0) * frac) * torch.randn(q.shape, device=device, generator=gen)
+        parts: dict[str, torch.Tensor] = {}
+        if qc.gradient == "autograd":
+            u, grad_u = margin_and_gradient(module, q.clone(), "autograd", self.fd_step)
         else:
-            eye = torch.eye(3, dtype=q.dtype, device=device) * fd_step
+            eye = torch.eye(3, dtype=q.dtype, device=device) * self.fd_step
             parts = {"q": q, "probe": (q[:, None, :] + eye).reshape(-1, 3)}
-        w_entropy = minimax_weight(it, cfg.n_minimax)
-        use_entropy = w_entropy > 1e-6 and (cfg.lambda_max > 0 or cfg.lambda_min > 0)
+        w_entropy = minimax_weight(step, ec.n_minimax)
+        use_entropy = w_entropy > 1e-6 and (ec.lambda_max > 0 or ec.lambda_min > 0)
         if use_entropy:
-            parts["uniform"] = lo + (hi - lo) * torch.rand((cfg.entropy_uniform_points, 3), device=device, generator=gen)
-            parts["on_input"] = pts_t[torch.randint(0, len(pts_t), (cfg.entropy_input_points,), device=device, generator=gen)]
-        if free is not None and len(free):
-            fidx = torch.randint(0, len(free), (cfg.free_space_points,), device=device, generator=gen)
-            parts["free"] = free[fidx]
-        if near is not None:
-            nidx = torch.randint(0, len(near), (cfg.near_surface_points,), device=device, generator=gen)
-            parts["near"] = near[nidx]
-        logits = dict(zip(parts, torch.split(module(torch.cat(list(parts.values()))), [len(v) for v in parts.values()]))) if parts else {}
-        if cfg.gradient != "autograd":
+            parts["uniform"] = self.lo + (self.hi - self.lo) * torch.rand((ec.uniform_points, 3), device=device, generator=gen)
+            parts["on_input"] = self.pts_t[torch.randint(0, len(self.pts_t), (ec.input_points,), device=device, generator=gen)]
+        if self.free is not None:
+            fidx = torch.randint(0, len(self.free), (sc.free_space_points,), device=device, generator=gen)
+            parts["free"] = self.free[fidx]
+        if self.near is not None:
+            nidx = torch.randint(0, len(self.near), (sc.near_surface_points,), device=device, generator=gen)
+            parts["near"] = self.near[nidx]
+        logits = {}
+        if parts:
+            out = module(torch.cat(list(parts.values())))
+            logits = dict(zip(parts, torch.split(out, [len(v) for v in parts.values()])))
+        if qc.gradient != "autograd":
             u = margin_uncertainty(logits["q"])
-            grad_u = (margin_uncertainty(logits["probe"]).view(-1, 3) - u[:, None]) / fd_step  # forward differences
-        loss = sampling_loss(pull_to_surface(q, u, grad_u), target, cfg.sampling_weight)
+            grad_u = (margin_uncertainty(logits["probe"]).view(-1, 3) - u[:, None]) / self.fd_step
+        terms = {"sampling": sampling_loss(pull_to_surface(q, u, grad_u), target, qc.sampling_weight)}
         if use_entropy:
-            loss = loss + w_entropy * minimax_entropy_loss(logits["uniform"], logits["on_input"], cfg.lambda_min, cfg.lambda_max)
+            terms["entropy"] = w_entropy * minimax_entropy_loss(logits["uniform"], logits["on_input"],
+                                                                ec.lambda_min, ec.lambda_max)
         if "free" in logits:
             u_free = margin_uncertainty(logits["free"])
-            loss = loss + cfg.free_space_weight * sign_margin_loss(u_free, torch.zeros_like(u_free, dtype=torch.bool), free_margin[fidx])
+            outside = torch.zeros_like(u_free, dtype=torch.bool)
+            terms["free_space"] = sc.free_space_weight * sign_margin_loss(u_free, outside, self.free_margin[fidx])
         if "near" in logits:
-            inside = nidx < len(near) // 2  # the first half of `near` are the inside points
+            inside = nidx < len(self.near) // 2  # the first half of `near` are the inside points
             u_near = margin_uncertainty(logits["near"])
-            loss = loss + cfg.near_surface_weight * sign_margin_loss(u_near, inside, torch.full_like(u_near, near_margin))
-        return loss
+            terms["near_surface"] = sc.near_surface_weight * sign_margin_loss(
+                u_near, inside, torch.full_like(u_near, self.near_margin))
+        return terms
+
+    def surface_level(self, fitted: FittedField, points_unit: np.ndarray) -> float:
+        """RibPull meshes at the median of U over the input points (paper, Figure 3 caption)."""
+        return float(np.median(fitted.evaluate(self.points.astype(np.float32))["U"]))
 
     def _queries(self, pts: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-        """Neural-Pull queries, split evenly over `query_scales`."""
-        cfg: SparseOccConfig = self.config
+        """Neural-Pull queries, split evenly over `queries.scales`."""
+        qc = self.config.queries
         base = 0.25 * math.sqrt(len(pts) / 20000.0)
-        per = cfg.n_queries // len(cfg.query_scales)
+        per = qc.n_queries // len(qc.scales)
         tree = cKDTree(pts)
-        sigma = knn_sigma(pts, cfg.knn)
-        qs, nn = zip(*(sample_pull_queries(pts, per, rng, k=cfg.knn, scale=base * s, sigma=sigma, tree=tree)
-                       for s in cfg.query_scales))
+        sigma = knn_sigma(pts, qc.knn)
+        qs, nn = zip(*(sample_pull_queries(pts, per, rng, k=qc.knn, scale=base * s, sigma=sigma, tree=tree)
+                       for s in qc.scales))
         return np.concatenate(qs), np.concatenate(nn)
-
-    def _converged(self, history: list[float], window_means: list[float], it: int) -> bool:
-        cfg: SparseOccConfig = self.config
-        w = cfg.early_stop_window
-        if w <= 0 or (it + 1) % w != 0:
-            return False
-        window_means.append(float(np.mean(history[-w:])))
-        if it + 1 < cfg.early_stop_min_fraction * cfg.iterations or len(window_means) < 2:
-            return False
-        prev, last = window_means[-2], window_means[-1]
-        return (prev - last) < cfg.early_stop_rel_tol * abs(prev)
