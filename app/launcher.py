@@ -171,4 +171,5 @@ def worker_cmd(concurrency: int = 1, pool: str = "prefork", name: str | None = N
 
 def api_cmd(host: str, port: int) -> list[str]:
     return [sys.executable, "-m", "uvicorn", "app.main:app", "--host", host, "--port", str(port),
+            "--http", "app.httpserver:HardenedH11Protocol",  # header timeout, problem+json protocol errors
             "--no-access-log" if os.environ.get("RIBPULL_NO_ACCESS_LOG") else "--access-log"]

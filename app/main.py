@@ -24,7 +24,6 @@ from pydantic import ValidationError
 from sqlalchemy import select, update
 from sqlalchemy.exc import IntegrityError
 from starlette.concurrency import run_in_threadpool
-from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from . import __version__
 from .auth import current_owner
@@ -70,12 +69,13 @@ from .storage import (
     media_type,
     rmtree_quiet,
 )
+from .middleware import BodyLimit, BodyTimeout, Hardening, query_body_budget
+from .netpolicy import webhook_target_problem
 from .upload import receive_upload
 
 log = logging.getLogger("ribpull.api")
 
 ARTIFACT_NAMES = tuple(ARTIFACT_MEDIA_TYPES)  # == ribpull_core.pipeline.ARTIFACT_NAMES (a test checks)
-QUERY_BODY_LIMIT = 64 * 1024 * 1024  # bytes of any non-upload request body
 
 
 def _problems(*codes: int) -> dict:
@@ -94,39 +94,6 @@ def _problems(*codes: int) -> dict:
 
 
 JobIdPath = Annotated[str, Path(description="Job id (32 lowercase hex characters).", max_length=64)]
-
-
-class BodyLimit:
-    """Cap request bodies of every route except the streaming upload (which has its own cap)."""
-
-    def __init__(self, app, limit: int):
-        self.app = app
-        self.limit = limit
-
-    async def __call__(self, scope, receive, send):
-        if scope["type"] != "http" or (scope["method"] == "POST" and scope["path"].rstrip("/") == "/v1/jobs"):
-            return await self.app(scope, receive, send)
-        for k, v in scope.get("headers", ()):
-            if k == b"content-length":
-                try:
-                    too_big = int(v) > self.limit
-                except ValueError:
-                    too_big = False
-                if too_big:
-                    resp = problem_response(413, "too_large", f"request body over {self.limit} bytes")
-                    return await resp(scope, receive, send)
-        seen = 0
-
-        async def limited_receive():
-            nonlocal seen
-            msg = await receive()
-            if msg["type"] == "http.request":
-                seen += len(msg.get("body", b""))
-                if seen > self.limit:
-                    raise StarletteHTTPException(413, f"request body over {self.limit} bytes")
-            return msg
-
-        return await self.app(scope, limited_receive, send)
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
@@ -158,7 +125,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state._celery = None
     app.state._redis = None
     install_handlers(app)
-    app.add_middleware(BodyLimit, limit=QUERY_BODY_LIMIT)
+    # added innermost first: Hardening wraps BodyTimeout wraps BodyLimit
+    app.add_middleware(BodyLimit, query_limit=query_body_budget(settings.max_query_points))
+    app.add_middleware(BodyTimeout, timeout=settings.body_timeout_s)
+    app.add_middleware(Hardening)
 
     def sessions():
         if app.state._sm is None:
@@ -295,6 +265,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             if up.path is None:
                 raise ProblemError(422, "missing_file", "the multipart form needs a `file` part with the input")
             params = _parse_params(up.fields.get("params"))
+            await _check_limits(params)
             stored = params.model_dump()
             stored["preset"] = params.preset or settings.default_preset
             fingerprint = hashlib.sha256(
@@ -354,6 +325,24 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             return JobParams.model_validate_json(raw)
         except ValidationError as exc:
             raise validation_problem(list(exc.errors()), "params") from None
+
+    async def _check_limits(params: JobParams) -> None:
+        """Per-job resource bounds and the webhook target policy: 422 at submission, never a failed job."""
+        if params.iterations is not None and params.iterations > settings.max_iterations:
+            raise ProblemError(
+                422, "limit_exceeded",
+                f"params.iterations={params.iterations} is over this server's limit of {settings.max_iterations} "
+                "(RIBPULL_MAX_ITERATIONS)")
+        if params.resolution is not None and params.resolution > settings.resolution_limit:
+            raise ProblemError(
+                422, "limit_exceeded",
+                f"params.resolution={params.resolution} is over this server's limit of {settings.resolution_limit} "
+                f"(the largest grid that fits RIBPULL_WORKER_MEMORY_MB={settings.worker_memory_mb}, at most "
+                f"RIBPULL_MAX_RESOLUTION={settings.max_resolution})")
+        if params.webhook_url:
+            why = await run_in_threadpool(webhook_target_problem, params.webhook_url, settings)
+            if why:
+                raise ProblemError(422, "webhook_refused", f"params.webhook_url is not an allowed target: {why}")
 
     def _find_idem(owner: str, key: str) -> Job | None:
         with sessions()() as s:
@@ -562,16 +551,41 @@ def _validate_input(path, params: JobParams, settings: Settings):
     from ribpull_core.io import load_point_cloud
 
     try:
-        return load_point_cloud(
-            path, labels=params.labels, max_points=settings.max_points, max_file_bytes=settings.max_upload_bytes
+        cloud = load_point_cloud(
+            path, labels=params.labels, max_points=settings.max_points, max_file_bytes=settings.max_upload_bytes,
+            units=params.units, max_nifti_bytes=settings.max_nifti_bytes,
         )
+        _check_extent(cloud.points, params.units, settings)
+        return cloud
+    except ProblemError:
+        raise
     except RibPullInputError as exc:
         raise ProblemError(INPUT_ERROR_STATUS.get(exc.code, 422), exc.code, exc.message) from None
     except MemoryError:
         raise ProblemError(413, "too_large", "the file needs more memory than this server has") from None
     except Exception as exc:
-        log.exception("loader failed on %s", path.name)
+        log.exception("loader failed on %s", path.name)  # noqa: the detail below names no path
         raise ProblemError(422, "parse_error", f"could not read the file: {type(exc).__name__}") from None
+
+
+def _check_extent(points, units: str, settings: Settings) -> None:
+    """A ribcage spans RIBPULL_MIN_EXTENT_MM..RIBPULL_MAX_EXTENT_MM; anything else is almost always a unit
+    mistake (metres, or garbage coordinates) that would run for minutes and fail: refuse it now."""
+    import numpy as np
+
+    from ribpull_core.io import UNIT_SCALE
+
+    ext = float(np.max(np.ptp(points, axis=0)))
+    lo, hi = settings.min_extent_mm, settings.max_extent_mm
+    if lo <= ext <= hi:
+        return
+    raw = ext / UNIT_SCALE[units]
+    fits = [u for u, f in UNIT_SCALE.items() if u != units and lo <= raw * f <= hi]
+    hint = (f'; if the coordinates are in {"/".join(fits)}, send params {{"units": "{fits[0]}"}}' if fits
+            else "; no unit (mm, cm, m) makes this a ribcage: check the coordinates")
+    raise ProblemError(
+        422, "implausible_extent",
+        f"the input spans {ext:.4g} mm (params.units={units!r}); a ribcage spans {lo:g} to {hi:g} mm{hint}")
 
 
 def _clean_stale_uploads(settings: Settings, older_than_s: float = 3600) -> None:

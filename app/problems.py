@@ -9,6 +9,10 @@ from __future__ import annotations
 
 import json
 import logging
+import os
+import re
+import sys
+import tempfile
 from http import HTTPStatus
 from typing import Any
 
@@ -17,6 +21,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from sqlalchemy.exc import OperationalError as SQLAlchemyOperationalError
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.requests import ClientDisconnect
 
 log = logging.getLogger("ribpull.api")
 
@@ -33,9 +38,11 @@ _STATUS_CODES = {
     404: "not_found",
     405: "method_not_allowed",
     406: "not_acceptable",
+    408: "request_timeout",
     409: "conflict",
     413: "too_large",
     415: "unsupported_media_type",
+    416: "range_not_satisfiable",
     422: "validation_error",
     429: "too_many_requests",
     500: "internal_error",
@@ -65,6 +72,47 @@ class ProblemError(Exception):
         self.errors = errors
 
 
+_ROOTS = "tmp|var|usr|home|root|etc|opt|srv|work|proc|mnt|data|app|lib|lib64|run|dev|private|Users|nix|sys"
+_ABS_PATH_RE = re.compile(r"(?<![\w.:/])/(?:" + _ROOTS + r")(?:/[^\s'\"(),;:<>]*)+")
+_SECRET_PREFIXES: list[str] = []
+
+
+def _prefixes() -> list[str]:
+    if not _SECRET_PREFIXES:
+        here = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+        cands = {here, os.getcwd(), sys.prefix, tempfile.gettempdir(), os.path.expanduser("~")}
+        storage = os.environ.get("RIBPULL_STORAGE_DIR")
+        if storage:
+            cands.add(os.path.abspath(storage))
+        _SECRET_PREFIXES.extend(sorted((c for c in cands if c and len(c) > 1), key=len, reverse=True))
+    return _SECRET_PREFIXES
+
+
+def scrub_paths(text: str) -> str:
+    """Remove server file-system paths from a message shown to clients (keep the file's base name)."""
+    if not text or "/" not in text:
+        return text
+    for pre in _prefixes():
+        text = re.sub(re.escape(pre) + r"(?:/[^\s'\"(),;:<>]*)?",
+                      lambda m: os.path.basename(m.group(0).rstrip("/")) or "<server path>", text)
+    return _ABS_PATH_RE.sub(lambda m: os.path.basename(m.group(0).rstrip("/")) or "<server path>", text)
+
+
+def problem_body(status: int, code: str | None, detail: str, *, title: str | None = None,
+                 instance: str | None = None) -> dict[str, Any]:
+    code = code or _STATUS_CODES.get(status, "http_error")
+    body: dict[str, Any] = {
+        "type": TYPE_PREFIX + code,
+        "title": title or _title(status),
+        "status": status,
+        "detail": scrub_paths(detail),
+        "code": code,
+    }
+    if instance:
+        body["instance"] = instance
+    return body
+
+
 def problem_response(
     status: int,
     code: str,
@@ -76,19 +124,12 @@ def problem_response(
     errors: list[dict[str, Any]] | None = None,
     extra: dict[str, Any] | None = None,
 ) -> JSONResponse:
-    body: dict[str, Any] = {
-        "type": TYPE_PREFIX + code,
-        "title": title or _title(status),
-        "status": status,
-        "detail": detail,
-        "code": code,
-    }
-    if instance:
-        body["instance"] = instance
+    body = problem_body(status, code, detail, title=title, instance=instance)
     if errors is not None:
         body["errors"] = errors
     if extra:
         body.update({k: v for k, v in extra.items() if k not in body})
+    headers = {**(headers or {}), "X-Content-Type-Options": "nosniff"}
     return JSONResponse(body, status_code=status, headers=headers, media_type=PROBLEM_MEDIA_TYPE)
 
 
@@ -105,7 +146,7 @@ def _clean_validation_errors(errs: list[dict[str, Any]]) -> list[dict[str, Any]]
     for e in errs[:50]:
         item = {
             "loc": [str(p) for p in e.get("loc", ())],
-            "msg": str(e.get("msg", ""))[:500],
+            "msg": scrub_paths(str(e.get("msg", ""))[:500]),
             "type": str(e.get("type", "")),
         }
         out.append(item)
@@ -146,6 +187,11 @@ def install_handlers(app: FastAPI) -> None:
             detail = f"method {request.method} is not allowed on {request.url.path}"
         return problem_response(status, code, detail, headers=getattr(exc, "headers", None),
                                 instance=request.url.path)
+
+    @app.exception_handler(ClientDisconnect)
+    async def _gone(request: Request, exc: ClientDisconnect):
+        log.info("client disconnected during %s %s", request.method, request.url.path)
+        return problem_response(400, "client_disconnected", "the client closed the connection")
 
     @app.exception_handler(SQLAlchemyOperationalError)
     async def _db_down(request: Request, exc: Exception):

@@ -18,6 +18,7 @@ Preset = Literal["default", "paper", "smoke"]
 MethodName = Literal["sparseocc", "neuralpull", "digs"]
 Status = Literal["queued", "running", "succeeded", "failed", "canceled"]
 Label = Annotated[int, Field(ge=1, le=255)]
+Units = Literal["mm", "cm", "m"]
 
 
 class JobParams(BaseModel):
@@ -30,14 +31,21 @@ class JobParams(BaseModel):
 
     preset: Preset | None = Field(None, description="Run preset (default: the server's RIBPULL_DEFAULT_PRESET).")
     method: MethodName | None = Field(None, description="Override the preset's method.")
-    iterations: int | None = Field(None, ge=1, le=100_000, description="Override the fit's iteration count.")
-    resolution: int | None = Field(None, ge=16, le=1024, description="Finest marching-cubes resolution.")
+    iterations: int | None = Field(
+        None, ge=1, le=100_000, description="Override the fit's iteration count (server cap: RIBPULL_MAX_ITERATIONS, "
+                                            "default 40000).")
+    resolution: int | None = Field(
+        None, ge=16, le=1024, description="Finest marching-cubes resolution (server cap: the largest grid that fits "
+                                          "RIBPULL_WORKER_MEMORY_MB, at most RIBPULL_MAX_RESOLUTION, default 512).")
     labels: list[Label] | None = Field(
         None, min_length=1, max_length=255, description="NIfTI label values to keep (1..255)."
     )
     skeleton: bool = Field(True, description="Also extract the rib skeleton.")
     preview: bool = Field(True, description="Also render preview.png.")
     seed: int = Field(0, ge=0, le=2**31 - 1)
+    units: Units = Field(
+        "mm", description="Unit of the input's coordinates (point clouds) or affine (NIfTI): mm, cm or m. The "
+                          "input is converted to mm on load; every output is in mm in the input's frame.")
     webhook_url: str | None = Field(
         None, max_length=2048, description="http(s) URL that receives a signed POST when the job finishes."
     )

@@ -17,6 +17,10 @@ from pydantic import AliasChoices, Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 
+#: bytes per voxel of a res^3 marching-cubes grid the worker needs (measured: 9 GB at 1024^3)
+RESOLUTION_BYTES_PER_VOXEL = 8.5
+
+
 class Settings(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="RIBPULL_", extra="ignore", populate_by_name=True)
 
@@ -42,6 +46,19 @@ class Settings(BaseSettings):
     max_upload_mb: float = Field(256.0, gt=0, description="Upload size cap (MiB); larger uploads get 413.")
     max_points: int = Field(2_000_000, ge=100, description="Most points an input may have.")
     max_query_points: int = Field(100_000, ge=1, description="Most points one /query request may carry.")
+    max_inflated_mb: float = Field(
+        1024.0, gt=0, description="Most MiB a compressed upload (.nii.gz, gzip) may inflate to; checked while "
+                                  "streaming, before anything is decompressed in full (413).")
+    max_nifti_mb: float = Field(
+        1024.0, gt=0, description="Most MiB of voxel data (dims x dtype from the NIfTI header) a label map may "
+                                  "have; checked before any voxel is read (413).")
+    body_timeout_s: float = Field(
+        30.0, gt=0, description="A request whose headers or next body chunk take longer than this gets 408 "
+                                "(slow clients; the partial upload is removed).")
+    min_extent_mm: float = Field(50.0, gt=0, description="Smallest bounding-box size (mm, after `units`) "
+                                                         "accepted as a ribcage (422 below it).")
+    max_extent_mm: float = Field(2000.0, gt=0, description="Largest bounding-box size (mm, after `units`) "
+                                                           "accepted as a ribcage (422 above it).")
     readyz_require_worker: bool = Field(True, description="/readyz fails while no worker heartbeat is seen.")
     log_level: str = Field("INFO", description="Python log level of the API and the worker.")
 
@@ -63,6 +80,19 @@ class Settings(BaseSettings):
     worker_concurrency: int = Field(1, ge=1, description="Celery worker processes (scripts/serve.py, compose).")
     worker_pool: str = Field("prefork", description="Celery pool for scripts/serve.py: prefork or solo.")
     default_preset: str = Field("default", description="Preset used when params omit it.")
+    worker_memory_mb: int = Field(
+        4096, ge=256, description="Memory one worker process may use (MiB); caps params.resolution (the largest "
+                                  "grid that fits) and is the child's recycle threshold.")
+    max_resolution: int = Field(
+        512, ge=16, le=1024, description="Largest params.resolution accepted (also capped by "
+                                         "RIBPULL_WORKER_MEMORY_MB).")
+    max_iterations: int = Field(40_000, ge=1, description="Largest params.iterations accepted (the most any "
+                                                          "preset uses is 40000).")
+    worker_max_memory_mb: int | None = Field(
+        None, ge=64, description="A worker child whose resident memory passes this after a job is replaced "
+                                 "(Celery max-memory-per-child); default RIBPULL_WORKER_MEMORY_MB / 2.")
+    cancel_grace_s: float = Field(2.0, gt=0, description="A cancel not honoured by the running stage within "
+                                                         "this is enforced by ending the worker child.")
     pipeline: str = Field(
         "ribpull_core.pipeline:run_pipeline",
         description="module:function the worker calls (same signature as run_pipeline); leave as is.",
@@ -73,7 +103,9 @@ class Settings(BaseSettings):
     webhook_timeout_s: float = Field(10.0, gt=0, description="Timeout of one webhook POST.")
     webhook_max_attempts: int = Field(6, ge=1, description="Webhook attempts before giving up.")
     webhook_backoff_s: float = Field(5.0, ge=0, description="First retry delay; doubles each retry.")
-    webhook_allow_private: bool = Field(True, description="Allow webhook URLs on loopback/private addresses.")
+    webhook_allowlist: str = Field(
+        "", description="Comma-separated private networks/hosts (CIDR or IP) webhooks may target; loopback, "
+                        "link-local and the service's own ports are always refused.")
 
     @field_validator("device")
     @classmethod
@@ -124,6 +156,34 @@ class Settings(BaseSettings):
     @property
     def max_upload_bytes(self) -> int:
         return int(self.max_upload_mb * 1024 * 1024)
+
+    @property
+    def max_inflated_bytes(self) -> int:
+        return int(self.max_inflated_mb * 1024 * 1024)
+
+    @property
+    def max_nifti_bytes(self) -> int:
+        return int(self.max_nifti_mb * 1024 * 1024)
+
+    @property
+    def resolution_limit(self) -> int:
+        """Largest grid the worker's memory allows: ~RESOLUTION_BYTES_PER_VOXEL per voxel of res^3 (measured:
+        9 GB at 1024^3), using half of RIBPULL_WORKER_MEMORY_MB, rounded down to a multiple of 16."""
+        fit = int((self.worker_memory_mb * 1024 * 1024 / 2 / RESOLUTION_BYTES_PER_VOXEL) ** (1 / 3))
+        return max(16, min(self.max_resolution, fit - fit % 16))
+
+    @property
+    def max_memory_per_child_kib(self) -> int:
+        return int((self.worker_max_memory_mb or max(64, self.worker_memory_mb // 2)) * 1024)
+
+    @property
+    def redis_port(self) -> int | None:
+        from urllib.parse import urlsplit
+
+        try:
+            return urlsplit(self.redis_url).port or 6379
+        except ValueError:
+            return None
 
     @property
     def visibility_timeout(self) -> int:

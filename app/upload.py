@@ -8,11 +8,15 @@ as the cap is passed (or before reading anything when Content-Length already say
 from __future__ import annotations
 
 import hashlib
+import logging
 import uuid
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from fastapi import Request
+from starlette.concurrency import run_in_threadpool
+from starlette.requests import ClientDisconnect
 from python_multipart.exceptions import FormParserError, MultipartParseError
 from python_multipart.multipart import MultipartParser, parse_options_header
 
@@ -22,6 +26,52 @@ from .storage import rmtree_quiet, safe_filename
 
 MAX_FIELD_BYTES = 64 * 1024  # params JSON and any other non-file field
 MULTIPART_OVERHEAD = 64 * 1024  # boundaries, part headers and the params field on top of the file cap
+INFLATE_STEP = 4 * 1024 * 1024  # most bytes inflated at once while measuring a gzip stream
+
+log = logging.getLogger("ribpull.api")
+
+
+class InflateMeter:
+    """Counts the bytes a gzip stream inflates to, chunk by chunk as it arrives, without keeping
+    them: memory stays O(INFLATE_STEP) however large the inflated size. Raises _Inflated at `cap`."""
+
+    def __init__(self, cap: int):
+        self.cap = cap
+        self.total = 0
+        self.broken = False
+        self._d = zlib.decompressobj(wbits=31)
+
+    def feed(self, data: bytes) -> None:
+        if self.broken:
+            return
+        try:
+            while data:
+                out = self._d.decompress(data, INFLATE_STEP)
+                self.total += len(out)
+                if self.total > self.cap:
+                    raise _Inflated()
+                if self._d.eof:  # a multi-member gzip: the next member starts in unused_data
+                    data = self._d.unused_data
+                    self._d = zlib.decompressobj(wbits=31)
+                    if data[:2] != b"\x1f\x8b":
+                        return  # trailing garbage: the loader reports it
+                else:
+                    data = self._d.unconsumed_tail
+                    if not data and out:
+                        # input consumed but output may still be pending: drain with no new input
+                        while True:
+                            more = self._d.decompress(b"", INFLATE_STEP)
+                            if not more:
+                                break
+                            self.total += len(more)
+                            if self.total > self.cap:
+                                raise _Inflated()
+        except zlib.error:
+            self.broken = True  # not valid gzip: the loader gives the user a proper message
+
+
+class _Inflated(Exception):
+    pass
 
 
 class _TooLarge(Exception):
@@ -76,7 +126,8 @@ async def receive_upload(request: Request, settings: Settings) -> Upload:
     up.tmpdir.mkdir(parents=True)
 
     state: dict = {"headers": {}, "hname": b"", "hval": b"", "part": None}
-    fh = {"f": None, "h": None}
+    fh = {"f": None, "h": None, "meter": None, "head": b""}
+    icap = settings.max_inflated_bytes
     field_buf: dict[str, bytearray] = {}
     total = {"n": 0}
 
@@ -124,6 +175,13 @@ async def receive_upload(request: Request, settings: Settings) -> Upload:
                 raise _TooLarge()
             fh["f"].write(chunk)
             fh["h"].update(chunk)
+            if len(fh["head"]) < 2:
+                fh["head"] += bytes(chunk[:2])
+                if fh["head"][:2] == b"\x1f\x8b" and fh["meter"] is None:
+                    fh["meter"] = InflateMeter(icap)
+                    fh["pending"] = []
+            if fh["meter"] is not None:
+                fh["pending"].append(bytes(chunk))
         else:
             buf = field_buf[part[1]]
             if len(buf) + len(chunk) > MAX_FIELD_BYTES:
@@ -156,12 +214,24 @@ async def receive_upload(request: Request, settings: Settings) -> Upload:
                 raise _TooLarge()
             if chunk:
                 parser.write(chunk)
+                if fh["meter"] is not None and fh.get("pending"):
+                    todo, fh["pending"] = b"".join(fh["pending"]), []
+                    await run_in_threadpool(fh["meter"].feed, todo)  # CPU work off the event loop
         parser.finalize()
         if fh["f"] is not None:  # body ended inside the file part
             raise ProblemError(400, "bad_multipart", "the multipart body ended before the file part was complete")
         ok = True
     except _TooLarge:
         raise ProblemError(413, "too_large", _too_large_msg(settings)) from None
+    except _Inflated:
+        raise ProblemError(
+            413, "too_large",
+            f"the compressed upload inflates to more than {settings.max_inflated_mb:g} MiB "
+            "(RIBPULL_MAX_INFLATED_MB); crop the volume or store it with a smaller data type",
+        ) from None
+    except ClientDisconnect:
+        log.info("client disconnected during an upload (%d bytes received); upload discarded", total["n"])
+        raise ProblemError(400, "client_disconnected", "the client closed the connection during the upload") from None
     except _FieldTooLarge as exc:
         raise ProblemError(413, "too_large", f"form field '{exc}' is larger than {MAX_FIELD_BYTES} bytes") from None
     except _Duplicate as exc:

@@ -26,11 +26,27 @@ KEY_B = "test-key-bob-9876543210"
 WEBHOOK_SECRET = "whsec_" + base64.b64encode(b"ribpull-test-webhook-secret-32by").decode()
 MAX_UPLOAD_MB = 8
 MAX_QUERY_POINTS = 5000
+MAX_INFLATED_MB = 64  # small caps so the hostile tests stay fast; the defaults are documented
+MAX_NIFTI_MB = 64
+BODY_TIMEOUT_S = 3
 
 #: a few seconds per job on 2 cores (the smoke preset)
 SMOKE = {"preset": "smoke"}
 #: long enough to be caught mid-fit (cancel / kill tests)
 LONG = {"preset": "smoke", "iterations": int(os.environ.get("RIBPULL_TEST_LONG_ITERATIONS", "400"))}
+
+
+def host_ip() -> str | None:
+    """This machine's non-loopback IPv4 address (where test webhook receivers listen), or None."""
+    import socket
+
+    try:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            s.connect(("192.0.2.1", 9))  # no packet is sent: just picks the outgoing interface
+            ip = s.getsockname()[0]
+    except OSError:
+        return None
+    return None if ip.startswith("127.") else ip
 
 
 class Stack:
@@ -58,6 +74,9 @@ class Stack:
             "RIBPULL_WEBHOOK_TIMEOUT_S": "5",
             "RIBPULL_MAX_UPLOAD_MB": str(MAX_UPLOAD_MB),
             "RIBPULL_MAX_QUERY_POINTS": str(MAX_QUERY_POINTS),
+            "RIBPULL_MAX_INFLATED_MB": str(MAX_INFLATED_MB),
+            "RIBPULL_MAX_NIFTI_MB": str(MAX_NIFTI_MB),
+            "RIBPULL_BODY_TIMEOUT_S": str(BODY_TIMEOUT_S),
             "RIBPULL_VISIBILITY_TIMEOUT_S": "10",  # short: a killed worker's job is redelivered quickly
             "RIBPULL_HEARTBEAT_S": "1",
             "RIBPULL_STALE_AFTER_S": "12",
@@ -67,7 +86,11 @@ class Stack:
             "RIBPULL_TORCH_THREADS": "2",
             "RIBPULL_DEVICE": "cpu",
             "RIBPULL_LOG_LEVEL": "INFO",
+            "RIBPULL_PORT": str(self.api_port),  # the webhook policy refuses the service's own ports
         })
+        hip = host_ip()
+        if hip:  # webhook receivers in the tests listen here (loopback targets are always refused)
+            env["RIBPULL_WEBHOOK_ALLOWLIST"] = f"{hip}/32"
         env.update(extra_env or {})
         self.env = env
 
@@ -186,6 +209,64 @@ def assert_problem(r: httpx.Response, status: int | None = None) -> dict:
     assert body["status"] == r.status_code
     assert body["type"].endswith(body["code"])
     return body
+
+
+def proc_status(pid: int) -> dict[str, int]:
+    """VmRSS / VmHWM (peak resident set) of a process in MiB, from /proc/<pid>/status."""
+    out = {}
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith(("VmRSS:", "VmHWM:")):
+                out[line.split(":")[0]] = int(line.split()[1]) // 1024
+    except OSError:
+        pass
+    return out
+
+
+def pool_children(proc) -> list[int]:
+    """pids of the Celery pool processes under a worker master (from /proc: no psutil needed)."""
+    kids = []
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                stat = (d / "stat").read_text()
+            except OSError:
+                continue
+            if int(stat.rsplit(")", 1)[1].split()[1]) == proc.pid:
+                kids.append(int(d.name))
+    return kids
+
+
+def raw_http(port: int, data: bytes, *, wait: float = 10.0, close_after_send: bool = False) -> bytes:
+    """Send raw bytes to 127.0.0.1:port and return what comes back until the server closes (or `wait`)."""
+    import socket
+
+    s = socket.create_connection(("127.0.0.1", port), timeout=wait)
+    try:
+        s.sendall(data)
+        if close_after_send:
+            return b""
+        chunks = []
+        deadline = time.monotonic() + wait
+        while time.monotonic() < deadline:
+            try:
+                b = s.recv(65536)
+            except (TimeoutError, OSError):
+                break
+            if not b:
+                break
+            chunks.append(b)
+        return b"".join(chunks)
+    finally:
+        s.close()
+
+
+def parse_raw_response(raw: bytes) -> tuple[int, dict[str, str], bytes]:
+    head, _, body = raw.partition(b"\r\n\r\n")
+    lines = head.decode("latin-1").split("\r\n")
+    status = int(lines[0].split()[1]) if lines and lines[0].startswith("HTTP/") else 0
+    headers = {k.strip().lower(): v.strip() for k, _, v in (ln.partition(":") for ln in lines[1:])}
+    return status, headers, body
 
 
 def make_sample(outdir: Path, n_points: int = 20_000) -> Path:

@@ -21,6 +21,7 @@ from servicekit import (
     SMOKE,
     WEBHOOK_SECRET,
     assert_problem,
+    host_ip,
     submit,
     wait_job,
 )
@@ -145,7 +146,7 @@ def test_keys_isolate_jobs(service):
 
 
 class _Receiver:
-    """A tiny webhook receiver on loopback; answers 503 to the first `fail_first` requests."""
+    """A tiny webhook receiver on this host's non-loopback address (allowlisted by servicekit); answers 503 to the first `fail_first` requests."""
 
     def __init__(self, fail_first: int = 1):
         self.requests: list[tuple[dict, bytes]] = []
@@ -163,8 +164,11 @@ class _Receiver:
             def log_message(self, *a):
                 pass
 
-        self.server = ThreadingHTTPServer(("127.0.0.1", 0), H)
-        self.url = f"http://127.0.0.1:{self.server.server_address[1]}/hooks/ribpull"
+        ip = host_ip()
+        if ip is None:
+            pytest.skip("no non-loopback address for a webhook receiver (loopback targets are refused)")
+        self.server = ThreadingHTTPServer((ip, 0), H)
+        self.url = f"http://{ip}:{self.server.server_address[1]}/hooks/ribpull"
         threading.Thread(target=self.server.serve_forever, daemon=True).start()
 
     def close(self):

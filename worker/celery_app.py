@@ -42,10 +42,15 @@ celery_app.conf.update(
     worker_cancel_long_running_tasks_on_connection_loss=False,
     broker_heartbeat=0,
     worker_proc_alive_timeout=120,  # pool processes import torch at start-up
+    # a pool process whose resident memory grew past this after a job is replaced by a fresh one
+    # (a 512^3 grid leaves GBs in the allocator otherwise); KiB, from RIBPULL_WORKER_MAX_MEMORY_MB
+    worker_max_memory_per_child=settings.max_memory_per_child_kib,
 )
 app = celery_app  # `celery -A worker.celery_app` looks for `app`
 
 _torch_ready = False
+#: True in a prefork pool process (the master replaces it if it exits), False in a solo worker
+IN_POOL_CHILD = False
 
 
 def configure_torch() -> None:
@@ -130,6 +135,8 @@ def _on_process_init(**_kw) -> None:
     """A prefork pool process: fresh DB connections, torch threads, warm imports, maintenance."""
     from app import db
 
+    global IN_POOL_CHILD
+    IN_POOL_CHILD = True
     for eng in list(db._engines.values()):
         eng.dispose(close=False)
     db._engines.clear()

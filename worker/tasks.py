@@ -19,11 +19,13 @@ import traceback
 
 from app.db import Job, get_job, make_sessionmaker, utcnow
 from app.jobs import TASK_WEBHOOK, enqueue
+from app.problems import scrub_paths
 from app.schemas import finite_or_none, json_safe
 from app.settings import Settings
 from app.storage import ARTIFACT_MEDIA_TYPES, artifacts_dir, input_file, job_dir
 
 from . import state
+from . import celery_app as _capp
 from .celery_app import celery_app, configure_torch, settings
 from .webhooks import backoff_s, deliver_once
 
@@ -52,6 +54,36 @@ class Reporter:
         self._stop = threading.Event()
         self._hb = threading.Thread(target=self._heartbeat, name=f"hb-{job_id[:8]}", daemon=True)
         self._hb.start()
+        self._watch = threading.Thread(target=self._cancel_watch, name=f"cw-{job_id[:8]}", daemon=True)
+        self._watch.start()
+
+    def _cancel_watch(self) -> None:
+        """Enforce a cancel the running stage does not honour within RIBPULL_CANCEL_GRACE_S: record the
+        job canceled and end this pool process (the Celery master starts a fresh one; the redelivered
+        message finds the job finished). Only in a prefork child: a solo worker is never killed."""
+        poll = max(0.1, min(0.5, self.settings.cancel_check_interval_s or 0.5))
+        seen_at = None
+        while not self._stop.wait(poll):
+            try:
+                status, token, cancel = state.read_flags(self.sm, self.job_id)
+            except Exception:  # noqa: BLE001
+                continue
+            if status != "running" or token != self.token or not cancel:
+                continue
+            now = time.monotonic()
+            seen_at = seen_at or now
+            if now - seen_at < self.settings.cancel_grace_s or not _capp.IN_POOL_CHILD:
+                continue
+            if state.finish(self.sm, self.job_id, self.token, "canceled",
+                            message="canceled on request (the running stage was stopped)"):
+                log.warning("job %s: cancel not honoured within %.1f s; ending this pool process",
+                            self.job_id, self.settings.cancel_grace_s)
+                try:
+                    shutil.rmtree(job_dir(self.settings, self.job_id) / f".work-{self.token}", ignore_errors=True)
+                    notify(self.job_id, self.settings)
+                finally:
+                    os._exit(0)
+            return
 
     def _heartbeat(self) -> None:
         while not self._stop.wait(self.settings.heartbeat_s):
@@ -65,6 +97,8 @@ class Reporter:
     def stop(self) -> None:
         self._stop.set()
         self._hb.join(timeout=5)
+        if threading.current_thread() is not self._watch:
+            self._watch.join(timeout=5)
 
     def progress(self, p) -> None:
         try:
@@ -134,6 +168,7 @@ def _pipeline_options(params: dict, settings: Settings):
         seed=int(params.get("seed") or 0),
         max_points=settings.max_points,
         max_file_bytes=max(settings.max_upload_bytes, 1),
+        units=params.get("units") or "mm",
     )
 
 
@@ -196,7 +231,8 @@ def execute_job(job_id: str, settings: Settings) -> str:
         try:
             result = run_pipeline(inp, work, options, reporter.progress, reporter.should_cancel)
         except RibPullInputError as exc:
-            state.finish(sm, job_id, token, "failed", error_code=str(exc.code)[:64], error_message=exc.message)
+            state.finish(sm, job_id, token, "failed", error_code=str(exc.code)[:64],
+                         error_message=scrub_paths(exc.message))
             outcome = "failed"
         except JobCanceled:
             if reporter.lost:
@@ -231,7 +267,7 @@ def execute_job(job_id: str, settings: Settings) -> str:
         log.error("job %s: internal error\n%s", job_id, traceback.format_exc())
         try:
             state.finish(sm, job_id, token, "failed", error_code="internal_error",
-                         error_message=f"{type(exc).__name__}: {exc}"[:2000])
+                         error_message=scrub_paths(f"{type(exc).__name__}: {exc}")[:2000])
         except Exception:
             log.exception("job %s: could not record the failure", job_id)
         outcome = "failed"
@@ -272,14 +308,14 @@ def attempt_webhook(job_id: str, settings: Settings, attempt: int) -> str:
         vals = {"webhook_attempts": Job.webhook_attempts + 1, "webhook_error": err}
         if ok:
             vals["webhook_status"] = "delivered"
-        elif attempt >= settings.webhook_max_attempts:
+        elif attempt >= settings.webhook_max_attempts or (err or "").startswith("refused target"):
             vals["webhook_status"] = "failed"
         s.execute(update(Job).where(Job.id == job_id).values(**vals))
         s.commit()
     if ok:
         log.info("job %s: webhook delivered (attempt %d)", job_id, attempt)
         return "delivered"
-    if attempt >= settings.webhook_max_attempts:
+    if attempt >= settings.webhook_max_attempts or (err or "").startswith("refused target"):
         log.warning("job %s: webhook failed for good after %d attempts: %s", job_id, attempt, err)
         return "failed"
     delay = backoff_s(settings, attempt)

@@ -11,17 +11,15 @@ from __future__ import annotations
 import base64
 import hashlib
 import hmac
-import ipaddress
 import json
 import logging
-import socket
 import time
-from urllib.parse import urlsplit
 
 import httpx
 
 from app.db import Job, utcnow
 from app.jobs import job_to_dict
+from app.netpolicy import webhook_target_problem
 from app.schemas import JobOut
 from app.settings import Settings
 
@@ -59,26 +57,12 @@ def event_payload(job: Job, settings: Settings) -> dict:
     return {"type": f"job.{job.status}", "timestamp": utcnow().isoformat(), "data": data}
 
 
-def _blocked(url: str) -> str | None:
-    host = urlsplit(url).hostname or ""
-    try:
-        infos = socket.getaddrinfo(host, None)
-    except OSError as exc:
-        return f"cannot resolve {host}: {exc}"
-    for info in infos:
-        ip = ipaddress.ip_address(info[4][0].split("%")[0])
-        if ip.is_private or ip.is_loopback or ip.is_link_local or ip.is_reserved or ip.is_multicast:
-            return f"{host} resolves to a non-public address ({ip}); RIBPULL_WEBHOOK_ALLOW_PRIVATE is off"
-    return None
-
-
 def deliver_once(job: Job, settings: Settings) -> tuple[bool, str | None]:
     """One POST attempt. Returns (delivered, error message)."""
     url = job.webhook_url or ""
-    if not settings.webhook_allow_private:
-        why = _blocked(url)
-        if why:
-            return False, why
+    why = webhook_target_problem(url, settings)
+    if why:  # checked at submission too; again here in case the name now resolves elsewhere
+        return False, f"refused target: {why}"
     body = json.dumps(event_payload(job, settings), separators=(",", ":")).encode()
     msg_id = f"msg_{job.id}_{job.status}"
     ts = int(time.time())
