@@ -1,4 +1,4 @@
-"""`ribpull` command line: fit, skeleton, phantom, bench.
+"""`ribpull` command line: fit, skeleton, phantom, bench; submit, status, download (service client).
 
 Every command calls the same library functions the service uses (fit -> pipeline.run_pipeline).
 Bad input prints one line saying what to fix and exits with status 2; a cancel (Ctrl-C) exits 130.
@@ -98,16 +98,132 @@ def cmd_phantom(args: argparse.Namespace) -> int:
     from .phantom import PhantomConfig, write_phantom
 
     cfg = PhantomConfig(seed=args.seed, n_points=args.points, noise_mm=args.noise,
-                        missing_ribs=tuple(args.missing or ()), mirror=args.mirror)
-    files = write_phantom(Path(args.output), cfg, nifti=args.nifti, spacing_mm=args.spacing)
+                        missing_ribs=tuple(args.missing or ()), mirror=args.mirror, sternum=args.sternum)
+    files = write_phantom(Path(args.output), cfg, nifti=args.nifti, spacing_mm=args.spacing,
+                          partial_volume=args.partial_volume)
     print("wrote " + ", ".join(str(p) for p in files.values()))
     return 0
+
+
+def _spacing_arg(text: str) -> float | tuple[float, float, float]:
+    """--spacing: one voxel size in mm ("1.5") or three comma-separated ones ("0.75,0.75,2.5")."""
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) not in (1, 3) or not all(v > 0 for v in values):
+        raise argparse.ArgumentTypeError(f"expected one size in mm or three comma-separated (sx,sy,sz), got {text!r}")
+    return values[0] if len(values) == 1 else tuple(values)
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
     from . import bench
 
     return bench.main(args)
+
+
+# --- service client: submit / status / download (ribpull_core.client, httpx only) ---------------
+
+def _client(args: argparse.Namespace):
+    from .client import RibPullClient
+
+    if not args.url:
+        raise SystemExit("ribpull: error: --url (or RIBPULL_URL) is required, e.g. http://127.0.0.1:8000")
+    return RibPullClient(args.url, key=args.key or None, timeout=args.http_timeout)
+
+
+def _service_call(fn) -> int:
+    """Run fn(); a refused request prints the problem's detail (exit 2), no answer / 5xx exits 3."""
+    from .client import ServiceError
+
+    try:
+        return fn()
+    except ServiceError as exc:
+        print(f"ribpull: error: {exc}", file=sys.stderr)
+        return 2 if 400 <= exc.status < 500 or exc.code in ("not_succeeded", "artifact_not_found") else 3
+
+
+def _wait_and_fetch(c, job: dict, args: argparse.Namespace) -> int:
+    from .client import describe
+
+    def show(j):
+        if not args.quiet:
+            print(describe(j), file=sys.stderr, flush=True)
+
+    job = c.wait(job["id"], poll_s=args.poll, timeout_s=args.timeout, on_progress=show)
+    if job["status"] != "succeeded":
+        err = job.get("error") or {}
+        print(f"ribpull: job {job['id']} {job['status']}"
+              + (f" [{err.get('code')}]: {err.get('message')}" if err else ""), file=sys.stderr)
+        return 1
+    if args.output:
+        saved = c.download(job, args.output)
+        print(f"downloaded {len(saved)} files to {args.output}", file=sys.stderr)
+    return 0
+
+
+def cmd_submit(args: argparse.Namespace) -> int:
+    import json
+
+    try:
+        params = json.loads(args.params) if args.params else None
+    except ValueError as exc:
+        print(f"ribpull: error: --params is not JSON: {exc}", file=sys.stderr)
+        return 2
+    if not Path(args.input).is_file():
+        print(f"ribpull: error: no such file: {args.input}", file=sys.stderr)
+        return 2
+
+    def run() -> int:
+        with _client(args) as c:
+            job = c.submit(args.input, params, idempotency_key=args.idempotency_key)
+            print(job["id"], flush=True)  # stdout: the job id alone (JOB=$(ribpull submit ...))
+            if not (args.wait or args.output):
+                return 0
+            return _wait_and_fetch(c, job, args)
+
+    return _service_call(run)
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    import json
+
+    from .client import describe
+
+    def run() -> int:
+        with _client(args) as c:
+            if args.wait:
+                return _wait_and_fetch(c, c.job(args.job), args)
+            job = c.job(args.job)
+            print(json.dumps(job, indent=2) if args.json else f"{job['id']} {describe(job)}")
+            return 0
+
+    return _service_call(run)
+
+
+def cmd_download(args: argparse.Namespace) -> int:
+    def run() -> int:
+        with _client(args) as c:
+            saved = c.download(args.job, args.output, names=args.name or None)
+            for p in saved:
+                print(p)
+            return 0
+
+    return _service_call(run)
+
+
+def _service_args(sp: argparse.ArgumentParser) -> None:
+    import os
+
+    sp.add_argument("--url", default=os.environ.get("RIBPULL_URL", ""), help="service base URL (RIBPULL_URL)")
+    sp.add_argument("--key", default=os.environ.get("RIBPULL_API_KEY", ""), help="API key (RIBPULL_API_KEY)")
+    sp.add_argument("--http-timeout", type=float, default=120.0, help="seconds per HTTP request")
+
+
+def _wait_args(sp: argparse.ArgumentParser) -> None:
+    sp.add_argument("--poll", type=float, default=1.0, help="seconds between status polls")
+    sp.add_argument("--timeout", type=float, default=None, help="give up waiting after this many seconds")
+    sp.add_argument("-q", "--quiet", action="store_true", help="no progress lines on stderr")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -148,7 +264,11 @@ def build_parser() -> argparse.ArgumentParser:
     ph.add_argument("--missing", nargs="*", help="rib names to leave out, e.g. L11 R3")
     ph.add_argument("--mirror", action="store_true")
     ph.add_argument("--nifti", action="store_true", help="also write a voxelised label map mask.nii.gz")
-    ph.add_argument("--spacing", type=float, default=1.0, help="voxel size of the label map in mm")
+    ph.add_argument("--spacing", type=_spacing_arg, default=1.0,
+                    help="voxel size of the label map in mm: one number or sx,sy,sz (e.g. 0.75,0.75,2.5)")
+    ph.add_argument("--sternum", action="store_true", help="add the sternum (116) and costal cartilages (117)")
+    ph.add_argument("--partial-volume", action="store_true",
+                    help="label a voxel iff more than half of its volume is inside (default: its centre)")
     ph.set_defaults(func=cmd_phantom)
 
     b = sub.add_parser("bench", help="methods x cases benchmark; writes results.csv, tables and plots")
@@ -159,6 +279,32 @@ def build_parser() -> argparse.ArgumentParser:
     except ImportError:  # pragma: no cover - bench module not installed
         pass
     b.set_defaults(func=cmd_bench)
+
+    sm = sub.add_parser("submit", help="upload FILE to a RibPull service; --wait polls, -o DIR downloads the results")
+    sm.add_argument("input", help="the point cloud / label map to upload")
+    _service_args(sm)
+    sm.add_argument("--params", default=None, help='job params as JSON, e.g. \'{"preset": "smoke"}\'')
+    sm.add_argument("--idempotency-key", default=None, help="resubmitting with the same key returns the same job")
+    sm.add_argument("--wait", action="store_true", help="poll until the job ends (exit 0 only if it succeeded)")
+    sm.add_argument("-o", "--output", default=None, help="download every artifact here once it succeeded (implies --wait)")
+    _wait_args(sm)
+    sm.set_defaults(func=cmd_submit)
+
+    st = sub.add_parser("status", help="a job's status and progress on a RibPull service")
+    st.add_argument("job", help="job id")
+    _service_args(st)
+    st.add_argument("--json", action="store_true", help="print the whole job resource")
+    st.add_argument("--wait", action="store_true", help="poll until the job ends")
+    st.add_argument("-o", "--output", default=None, help="with --wait: download the artifacts here")
+    _wait_args(st)
+    st.set_defaults(func=cmd_status)
+
+    dl = sub.add_parser("download", help="download a succeeded job's artifacts")
+    dl.add_argument("job", help="job id")
+    _service_args(dl)
+    dl.add_argument("-o", "--output", default=".", help="directory (default: current)")
+    dl.add_argument("--name", nargs="+", default=None, help="only these artifacts (e.g. mesh.glb skeleton.glb)")
+    dl.set_defaults(func=cmd_download)
     return p
 
 
