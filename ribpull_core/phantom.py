@@ -13,6 +13,11 @@ are closed by half-ellipsoids centred at the centerline end points, semi-axes (a
 The triangle mesh samples that surface (400 rings x 48 vertices + caps), so it deviates from the
 analytic surface by < 0.03 mm (mean 0.006 mm, inscribed); `voxelize` and `tube_level` test the
 analytic solid directly.
+
+With PhantomConfig(sternum=True) a sternum (label 116: a straight flat tube on the midline, ~173 mm
+long, 32 mm wide, 11 mm thick) and costal cartilages (label 117) for ribs 1-10 are added, built the
+same way; each cartilage starts a designed gap (1.0-3.0 mm) beyond its rib's tip, so
+`separable_ribs` / `isolated_ribs` can tell whether a reconstruction keeps the ribs apart.
 """
 
 from __future__ import annotations
@@ -24,7 +29,9 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
-from scipy.interpolate import CubicSpline
+from scipy.interpolate import CubicSpline, PchipInterpolator
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from .errors import RibPullInputError
@@ -73,6 +80,24 @@ _RIB_KEEP = np.array([1.00, 0.92, 0.92, 0.93, 0.92, 0.90, 0.88, 0.84, 0.78, 0.69
 
 RIB_NAMES: tuple[str, ...] = tuple(f"L{n}" for n in range(1, 13)) + tuple(f"R{n}" for n in range(1, 13))
 
+# Sternum and costal cartilages (PhantomConfig.sternum), TotalSegmentator v2 ids and names
+STERNUM_LABEL = 116
+CARTILAGE_LABEL = 117
+STRUCTURE_LABEL_NAMES = {STERNUM_LABEL: "sternum", CARTILAGE_LABEL: "costal_cartilages"}
+STERNUM_TOP_MM = 4.0  # the sternum's top end lies this far above rib 1's tip centre (mean of L/R)
+STERNUM_BOTTOM_MM = 6.0  # ... and its bottom end this far below rib 7's cartilage end
+STERNUM_FORWARD_MM = 3.0  # its midline lies this far anterior of the line fitted through rib tips 1-7
+# semi-width (mm, along x) along the sternum at fractions of its length, top (manubrium) first
+STERNUM_SEMI_WIDTH_MM = ((0.0, 15.0), (0.2, 16.0), (0.3, 12.5), (0.8, 13.0), (1.0, 8.0))
+STERNUM_SEMI_THICKNESS_MM = 5.5  # along the anteroposterior direction: 11 mm thick
+CARTILAGE_RISE_MM = (0.0, 0.0, 0.0, 0.0, 2.0, 5.0, 9.0)  # cartilages of ribs 1-7: end minus tip height
+SHARED_CARTILAGE_AT = {8: 0.40, 9: 0.45, 10: 0.45}  # ribs 8-10 join the cartilage of the rib above here
+CARTILAGE_END_GAP_MM = 1.0  # surface gap left at a cartilage's medial end (sternum / cartilage above)
+CARTILAGE_GAP_RANGE_MM = (1.7, 3.0)  # rib tip -> cartilage gap of most ribs (separable at 1.5 mm) ...
+CLOSE_GAP_RANGE_MM = (1.0, 1.25)  # ... and of N_CLOSE_CARTILAGES ribs drawn from the seed (not separable)
+N_CLOSE_CARTILAGES = 4
+STRUCTURE_RING_STEP_MM = 0.5  # ring spacing of the structure meshes
+
 
 @dataclass
 class PhantomConfig:
@@ -84,6 +109,9 @@ class PhantomConfig:
     missing_ribs: names ("L11", "R3", ...) of ribs left out, in the output's naming.
     mirror: x -> -x; a rib that lands at x > 0 is named R (so names stay anatomically correct).
     scale: uniform size factor applied to everything (cross-sections included).
+    sternum: also build a sternum (label 116) and costal cartilages (label 117) for ribs 1-10,
+        each cartilage starting a small gap (1.0-3.0 mm, per rib from the seed) beyond its rib's
+        tip; the ribs themselves are unchanged.
     """
 
     seed: int = 0
@@ -92,6 +120,7 @@ class PhantomConfig:
     missing_ribs: tuple[str, ...] = ()
     mirror: bool = False
     scale: float = 1.0
+    sternum: bool = False
 
 
 @dataclass
@@ -136,13 +165,43 @@ class Rib:
 
 
 @dataclass
+class Structure:
+    """A non-rib solid of the phantom (sternum or one costal cartilage), modelled like a rib as an
+    analytic tube (`tube`; its level function is `tube_level`) with a watertight outward mesh.
+
+    name: "sternum" or "costal_cartilage_L3" (the cartilage of rib L3). label_id: 116 (sternum)
+    or 117 (costal cartilages, one label for all of them, as in TotalSegmentator v2).
+    rib: name of the rib the cartilage continues (None for the sternum). gap_mm: designed
+    surface gap between that rib's tip and the cartilage (None for the sternum)."""
+
+    name: str
+    label_id: int
+    mesh: trimesh.Trimesh
+    tube: Tube = field(repr=False, compare=False)
+    rib: str | None = None
+    gap_mm: float | None = None
+
+
+@dataclass
 class Phantom:
     """A ribcage: the config it came from, its ribs (order L1..L12, R1..R12, missing ones left
-    out) and all rib meshes concatenated in that order (one connected component per rib)."""
+    out), the extra structures (sternum then cartilages, only with config.sternum) and all their
+    meshes concatenated in that order (one connected component per rib / structure)."""
 
     config: PhantomConfig
     ribs: list[Rib]
     mesh: trimesh.Trimesh
+    structures: list[Structure] = field(default_factory=list)
+
+    @property
+    def solids(self) -> list[Rib | Structure]:
+        """Ribs then structures: the order of the pieces of `mesh`."""
+        return [*self.ribs, *self.structures]
+
+    @property
+    def cartilage_gaps_mm(self) -> dict[str, float]:
+        """rib name -> designed gap (mm) between its tip and its costal cartilage."""
+        return {st.rib: st.gap_mm for st in self.structures if st.rib is not None}
 
     def centerlines(self) -> dict[str, np.ndarray]:
         """name -> (500, 3) true centerline in mm, head -> tip."""
@@ -157,13 +216,21 @@ class Phantom:
 
     def face_labels(self) -> np.ndarray:
         """(F,) int32 label_id of every face of `mesh`."""
+        solids = self.solids
         return np.repeat(
-            np.array([r.label_id for r in self.ribs], dtype=np.int32), [len(r.mesh.faces) for r in self.ribs]
+            np.array([r.label_id for r in solids], dtype=np.int32), [len(r.mesh.faces) for r in solids]
         )
 
+    def face_solids(self) -> np.ndarray:
+        """(F,) int index into `solids` of the rib / structure every face of `mesh` belongs to."""
+        return np.repeat(np.arange(len(self.solids)), [len(r.mesh.faces) for r in self.solids])
+
     def label_names(self) -> dict[int, str]:
-        """label_id -> TotalSegmentator name ("rib_left_7") for the ribs present."""
-        return {r.label_id: rib_label_name(r.side, r.number) for r in self.ribs}
+        """label_id -> TotalSegmentator name ("rib_left_7", "sternum", "costal_cartilages") for
+        the ribs and structures present."""
+        names = {r.label_id: rib_label_name(r.side, r.number) for r in self.ribs}
+        names.update({st.label_id: STRUCTURE_LABEL_NAMES[st.label_id] for st in self.structures})
+        return names
 
 
 # ----------------------------------------------------------------------------------- naming
@@ -447,7 +514,7 @@ def _tube_local(tube: Tube, points_mm: np.ndarray) -> dict:
     }  # fmt: skip
 
 
-def tube_level(rib: Rib, points_mm: np.ndarray) -> np.ndarray:
+def tube_level(rib: Rib | Structure, points_mm: np.ndarray) -> np.ndarray:
     """(N,) normalised elliptical radius of points (N, 3) mm w.r.t. the rib's analytic solid:
     < 1 inside, 1 on the surface, > 1 outside. Exact for points within ~one tube radius of the
     surface (the tube's reach); farther away it is only guaranteed to be > 1."""
@@ -460,7 +527,7 @@ def tube_level(rib: Rib, points_mm: np.ndarray) -> np.ndarray:
     return np.sqrt(rho2)
 
 
-def tube_normals(rib: Rib, points_mm: np.ndarray) -> np.ndarray:
+def tube_normals(rib: Rib | Structure, points_mm: np.ndarray) -> np.ndarray:
     """(N, 3) outward unit normals of the analytic surface through points (N, 3) mm: the
     normalised gradient of `tube_level` (closed form; exact on the surface, where level = 1).
 
@@ -485,11 +552,293 @@ def tube_normals(rib: Rib, points_mm: np.ndarray) -> np.ndarray:
     return grad / np.linalg.norm(grad, axis=1, keepdims=True)
 
 
+# ------------------------------------------------------------------- sternum and cartilages
+
+
+def _straight_tube(points_mm: np.ndarray, e0: np.ndarray, a_v_mm: np.ndarray, a_t_mm: np.ndarray) -> Tube:
+    """Tube along a dense (M, 3) centerline (mm, ~DENSE_STEP_MM apart) with semi-axes a_v, a_t (M,)
+    and end caps of semi-axis a_t at each end; e0 (3,) is the initial e_v direction."""
+    step = float(np.linalg.norm(np.diff(points_mm, axis=0), axis=1).mean())
+    tan = _tangents(points_mm)
+    e_v = parallel_transport(tan, e0)
+    e_t = np.cross(tan, e_v)
+    cap = np.array([a_t_mm[0], a_t_mm[-1]])
+    return Tube(points_mm, tan, e_v, e_t, np.asarray(a_v_mm, float), np.asarray(a_t_mm, float), cap, step)
+
+
+def _structure_mesh(tube: Tube, n_around: int = N_AROUND) -> trimesh.Trimesh:
+    """Watertight mesh of a structure tube, rings ~STRUCTURE_RING_STEP_MM apart."""
+    length = (len(tube.points_mm) - 1) * tube.step_mm
+    return tube_mesh(
+        tube, n_rings=max(8, int(np.ceil(length / STRUCTURE_RING_STEP_MM)) + 1), n_around=n_around
+    )
+
+
+def _rib_tip_pole(tube: Tube) -> tuple[np.ndarray, np.ndarray]:
+    """(3,) pole of the tip cap (mm) and (3,) outward tip tangent."""
+    return tube.points_mm[-1] + tube.cap_mm[1] * tube.tangents[-1], tube.tangents[-1]
+
+
+def _cartilage_gaps(seed: int) -> dict[str, float]:
+    """Designed rib tip -> cartilage gap (mm) for L1..L10, R1..R10: uniform in
+    CARTILAGE_GAP_RANGE_MM except N_CLOSE_CARTILAGES ribs (drawn from the seed) in CLOSE_GAP_RANGE_MM.
+    Its own random stream: the ribs' anatomy does not depend on it."""
+    rng = np.random.default_rng([int(seed), STERNUM_LABEL])
+    names = [f"{side}{n}" for side in ("L", "R") for n in range(1, 11)]
+    gaps = rng.uniform(*CARTILAGE_GAP_RANGE_MM, size=len(names))
+    close = rng.choice(len(names), N_CLOSE_CARTILAGES, replace=False)
+    gaps[close] = rng.uniform(*CLOSE_GAP_RANGE_MM, size=N_CLOSE_CARTILAGES)
+    return {n: float(g) for n, g in zip(names, gaps)}
+
+
+def _sternum_tube(tubes: dict[str, Tube], scale: float) -> Tube:
+    """Sternum: a straight flat tube on the mid-sagittal plane from above rib 1's tips to below
+    rib 7's cartilage ends, through (STERNUM_FORWARD_MM anterior of) the line fitted to tips 1-7."""
+    tips = np.array([[tubes[f"{side}{n}"].points_mm[-1] for n in range(1, 8)] for side in "LR"]).mean(axis=0)
+    slope, offset = np.polyfit(tips[:, 2], tips[:, 1], 1)  # y = slope * z + offset (mm)
+    z_top = tips[0, 2] + STERNUM_TOP_MM * scale
+    z_bottom = tips[6, 2] + (CARTILAGE_RISE_MM[6] - STERNUM_BOTTOM_MM) * scale
+    forward = STERNUM_FORWARD_MM * scale * np.sqrt(1 + slope**2)  # measured normal to the line
+    ends = np.array([[0.0, slope * z + offset + forward, z] for z in (z_top, z_bottom)])
+    length = float(np.linalg.norm(ends[1] - ends[0]))
+    n = int(np.ceil(length / DENSE_STEP_MM)) + 1
+    pts = ends[0] + np.linspace(0.0, 1.0, n)[:, None] * (ends[1] - ends[0])
+    frac, width = np.array(STERNUM_SEMI_WIDTH_MM).T
+    a_v = PchipInterpolator(frac, width * scale)(np.linspace(0.0, 1.0, n))
+    a_t = np.full(n, STERNUM_SEMI_THICKNESS_MM * scale)
+    return _straight_tube(pts, np.array([1.0, 0.0, 0.0]), a_v, a_t)
+
+
+def _hermite(p0: np.ndarray, t0: np.ndarray, p1: np.ndarray, t1: np.ndarray) -> np.ndarray:
+    """Dense (K, 3) cubic Hermite curve (mm) from p0 leaving along unit t0 to p1 arriving along
+    unit t1, tangent lengths = the chord; resampled ~DENSE_STEP_MM apart."""
+    chord = float(np.linalg.norm(p1 - p0))
+    u = np.linspace(0.0, 1.0, 4000)[:, None]
+    h00, h10, h01, h11 = 2 * u**3 - 3 * u**2 + 1, u**3 - 2 * u**2 + u, -2 * u**3 + 3 * u**2, u**3 - u**2
+    fine = h00 * p0 + h10 * chord * t0 + h01 * p1 + h11 * chord * t1
+    return _resample(fine, step=DENSE_STEP_MM)
+
+
+def _cartilage_tube(rib_tube: Tube, gap_mm: float, end_mm: np.ndarray, end_dir: np.ndarray) -> Tube:
+    """Cartilage continuing a rib: its start cap's pole lies gap_mm beyond the rib's tip pole along
+    the tip tangent (same cross-section and frame as the rib's tip, so the gap is exactly gap_mm,
+    pole to pole); it ends (cap centre) at end_mm (3,) arriving along end_dir (3,)."""
+    a_v, a_t = float(rib_tube.a_v_mm[-1]), float(rib_tube.a_t_mm[-1])
+    pole, tangent = _rib_tip_pole(rib_tube)
+    start = pole + (gap_mm + a_t) * tangent
+    pts = _hermite(start, tangent, end_mm, end_dir / np.linalg.norm(end_dir))
+    n = len(pts)
+    return _straight_tube(pts, rib_tube.e_v[-1], np.full(n, a_v), np.full(n, a_t))
+
+
+def _build_structures(tubes: dict[str, Tube], config: PhantomConfig) -> list[Structure]:
+    """Sternum and the costal cartilages of the ribs present (1-7 end next to the sternum's edge,
+    8-10 below the cartilage of the rib above; every end CARTILAGE_END_GAP_MM short of it)."""
+    scale = config.scale
+    sternum = _sternum_tube(tubes, scale)
+    end_gap = CARTILAGE_END_GAP_MM * scale
+    gaps = {name: g * scale for name, g in _cartilage_gaps(config.seed).items()}
+    cart: dict[str, Tube] = {}
+    for side in ("L", "R"):
+        for n in range(1, 11):
+            name = f"{side}{n}"
+            rib = tubes[name]
+            a_t = float(rib.a_t_mm[-1])
+            if n <= 7:  # true ribs: to the sternum's lateral edge, arriving horizontally (medially)
+                lateral = np.sign(rib.points_mm[-1, 0])
+                z_end = rib.points_mm[-1, 2] + CARTILAGE_RISE_MM[n - 1] * scale
+                fi = (sternum.points_mm[0, 2] - z_end) / (sternum.points_mm[0, 2] - sternum.points_mm[-1, 2])
+                k = fi * (len(sternum.points_mm) - 1)
+                centre = _interp_rows(sternum.points_mm, np.array([k]))[0]
+                half_width = float(np.interp(k, np.arange(len(sternum.a_v_mm)), sternum.a_v_mm))
+                end = centre + np.array([lateral * (half_width + end_gap + a_t), 0.0, 0.0])
+                end_dir = np.array([-lateral, 0.0, 0.0])
+            else:  # false ribs 8-10: up to the underside of the cartilage above
+                above = cart[f"{side}{n - 1}"]
+                i = round(SHARED_CARTILAGE_AT[n] * (len(above.points_mm) - 1))
+                up = above.e_v[i] if above.e_v[i, 2] > 0 else -above.e_v[i]
+                end = above.points_mm[i] - up * (above.a_v_mm[i] + end_gap + a_t)
+                end_dir = up
+            cart[name] = _cartilage_tube(rib, gaps[name], end, end_dir)
+    out = [Structure("sternum", STERNUM_LABEL, _structure_mesh(sternum, n_around=64), sternum)]
+    for name, tube in cart.items():
+        if name not in config.missing_ribs:
+            out.append(
+                Structure(f"costal_cartilage_{name}", CARTILAGE_LABEL, _structure_mesh(tube), tube,
+                          rib=name, gap_mm=gaps[name])
+            )  # fmt: skip
+    return out
+
+
+# ------------------------------------------------------------------- gaps and isolated ribs
+
+
+def _gap_info(solid: Rib | Structure) -> dict:
+    """What `_mesh_gap_mm` needs of a solid: its mesh, a kd-tree of its face centroids, its longest
+    edge (mm), a kd-tree of its centerline ~1 mm apart and its largest semi-axis (mm)."""
+    mesh, tube = solid.mesh, solid.tube
+    tri = mesh.triangles
+    edge = max(float(np.linalg.norm(tri[:, k] - tri[:, (k + 1) % 3], axis=1).max()) for k in range(3))
+    axis = _resample(tube.points_mm, step=1.0)
+    reach = float(max(tube.a_v_mm.max(), tube.a_t_mm.max(), tube.cap_mm.max()))
+    return {
+        "mesh": mesh, "faces": cKDTree(mesh.triangles_center), "edge": edge,
+        "axis_mm": axis, "axis": cKDTree(axis), "reach": reach,
+    }  # fmt: skip
+
+
+def _points_to_mesh_mm(
+    points: np.ndarray, mesh: trimesh.Trimesh, face_tree: cKDTree, k: int = 12
+) -> np.ndarray:
+    """(N,) distance (mm) from points (N, 3) to mesh: exact point-to-triangle distance to the k faces
+    with the nearest centroids (the closest face is among them on these fine, regular meshes)."""
+    _, faces = face_tree.query(points, k=k)
+    pi = np.repeat(np.arange(len(points)), k)
+    closest = trimesh.triangles.closest_point(mesh.triangles[faces.ravel()], points[pi])
+    return np.linalg.norm(closest - points[pi], axis=1).reshape(len(points), k).min(axis=1)
+
+
+def _mesh_gap_mm(a: dict, b: dict, cutoff_mm: float) -> float:
+    """Smallest distance (mm) between two disjoint solids' triangle meshes (vertex-to-triangle both
+    ways; `_gap_info` dicts); inf when it is more than cutoff_mm. A point's distance to a mesh is at
+    most its distance to the nearest face centroid and at least that minus the longest edge, so only
+    vertices within one edge of the closest centroid distance are refined exactly."""
+    best = np.inf
+    axis_bound = a["reach"] + b["reach"] + cutoff_mm + 1.0  # centerlines ~1 mm apart: +1 mm
+    if not np.isfinite(a["axis"].query(b["axis_mm"], distance_upper_bound=axis_bound)[0]).any():
+        return np.inf
+    for src, dst in ((a, b), (b, a)):
+        v = src["mesh"].vertices
+        near_axis = dst["axis"].query(v, distance_upper_bound=dst["reach"] + cutoff_mm + 1.0)[0]
+        v = v[np.isfinite(near_axis)]  # the others are farther than cutoff from dst's solid
+        if not len(v):
+            continue
+        dc = dst["faces"].query(v, distance_upper_bound=cutoff_mm + dst["edge"])[0]
+        if not np.isfinite(dc).any():
+            continue
+        near = v[dc <= dc.min() + dst["edge"]]
+        best = min(best, float(_points_to_mesh_mm(near, dst["mesh"], dst["faces"]).min()))
+    return best if best <= cutoff_mm else np.inf
+
+
+def rib_gaps_mm(phantom: Phantom, cutoff_mm: float = 5.0) -> dict[str, float]:
+    """rib name -> smallest surface distance (mm) from the rib to any other solid of the phantom
+    (other ribs, sternum, cartilages); inf when that is more than cutoff_mm.
+
+    Computed on the truth meshes (vertex-to-triangle distances both ways): they are inscribed in the
+    analytic surfaces within 0.03 mm and the cartilage / rib-tip poles are mesh vertices, so this is
+    the analytic gap to within ~0.05 mm (a designed tip -> cartilage gap comes out exactly)."""
+    solids = phantom.solids
+    cache: dict[int, dict] = {}
+
+    def info(k: int) -> dict:
+        if k not in cache:
+            cache[k] = _gap_info(solids[k])
+        return cache[k]
+
+    gaps = {}
+    for i, rib in enumerate(phantom.ribs):
+        best = np.inf
+        for j, other in enumerate(solids):
+            if j == i:
+                continue
+            (alo, ahi), (blo, bhi) = rib.mesh.bounds, other.mesh.bounds
+            if np.any(alo - cutoff_mm > bhi) or np.any(blo - cutoff_mm > ahi):
+                continue  # bounding boxes farther apart than the cutoff
+            best = min(best, _mesh_gap_mm(info(i), info(j), cutoff_mm))
+        gaps[rib.name] = best
+    return gaps
+
+
+def separable_ribs(phantom: Phantom, min_gap_mm: float = 1.5) -> list[str]:
+    """Names (phantom order) of the ribs whose surface is at least min_gap_mm (mm) from every other
+    structure's surface (other ribs, sternum, cartilages), by `rib_gaps_mm` (precision ~0.05 mm)."""
+    gaps = rib_gaps_mm(phantom, cutoff_mm=max(5.0, 2.0 * min_gap_mm))
+    return [name for name, gap in gaps.items() if gap >= min_gap_mm]
+
+
+def _vertex_components(mesh: trimesh.Trimesh) -> np.ndarray:
+    """(V,) connected-component id of every vertex (edges of the faces; unused vertices alone)."""
+    f = np.asarray(mesh.faces)
+    n = len(mesh.vertices)
+    rows = np.concatenate([f[:, 0], f[:, 1], f[:, 2]])
+    cols = np.concatenate([f[:, 1], f[:, 2], f[:, 0]])
+    graph = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n))
+    return connected_components(graph, directed=False)[1]
+
+
+def _vertex_areas(mesh: trimesh.Trimesh) -> np.ndarray:
+    """(V,) a third of the area (mm^2) of the faces around each vertex."""
+    return np.bincount(
+        np.asarray(mesh.faces).ravel(),
+        weights=np.repeat(mesh.area_faces / 3.0, 3),
+        minlength=len(mesh.vertices),
+    )
+
+
+def isolated_ribs(
+    mesh: trimesh.Trimesh,
+    phantom: Phantom,
+    names: list[str] | None = None,
+    assign_mm: float = 5.0,
+    cover_mm: float = 3.0,
+) -> dict[str, bool]:
+    """name -> whether the rib comes out of a reconstruction `mesh` (mm, the phantom's frame) as a
+    connected component of its own. Default names: every rib of the phantom.
+
+    Every vertex of `mesh` is assigned to the nearest true solid (rib, sternum or cartilage; nearest
+    truth-mesh vertex, < 1 mm from the surface) if one is within assign_mm (farther vertices are
+    ignored); shares are by vertex area (a third of the adjacent faces' area). A rib is isolated iff
+      (a) some connected component has >= 95 % of its assigned area on the rib and comes within
+          cover_mm of >= 50 % of the rib's true area, and
+      (b) no component holding >= 5 % of its assigned area, or >= 5 % of the rib's true area, on the
+          rib has more than 5 % of its assigned area on any other structure (no rib merged into a
+          neighbour, even partly)."""
+    solids = phantom.solids
+    by_name = {r.name: i for i, r in enumerate(phantom.ribs)}
+    names = list(by_name) if names is None else list(names)
+    unknown = [n for n in names if n not in by_name]
+    if unknown:
+        raise RibPullInputError("bad_parameter", f"ribs {unknown} are not in the phantom")
+    truth_tree = cKDTree(np.concatenate([s.mesh.vertices for s in solids]))
+    truth_owner = np.repeat(np.arange(len(solids)), [len(s.mesh.vertices) for s in solids])
+    verts = np.asarray(mesh.vertices, dtype=np.float64)
+    comp = _vertex_components(mesh)
+    n_comp = int(comp.max()) + 1 if len(comp) else 0
+    dist, nearest = truth_tree.query(verts, distance_upper_bound=assign_mm)
+    assigned = np.isfinite(dist)
+    owner = np.where(assigned, truth_owner[np.minimum(nearest, len(truth_owner) - 1)], -1)
+    area = _vertex_areas(mesh)
+    # (components, solids) assigned area
+    share = np.zeros((n_comp, len(solids)))
+    np.add.at(share, (comp[assigned], owner[assigned]), area[assigned])
+    total = share.sum(axis=1)
+    frac = share / np.maximum(total, 1e-12)[:, None]
+    out = {}
+    for name in names:
+        k = by_name[name]
+        rib_mesh = solids[k].mesh
+        rib_area = float(rib_mesh.area)
+        touching = (frac[:, k] >= 0.05) | (share[:, k] >= 0.05 * rib_area)
+        other = np.delete(frac, k, axis=1).max(axis=1) if len(solids) > 1 else np.zeros(n_comp)
+        merged = bool(np.any(touching & (other > 0.05)))
+        own = False
+        centres, areas = rib_mesh.triangles_center[::4], rib_mesh.area_faces[::4]  # regular faces: every 4th
+        for c in np.nonzero((frac[:, k] >= 0.95) & (total > 0))[0]:
+            covered = cKDTree(verts[comp == c]).query(centres, distance_upper_bound=cover_mm)[0]
+            if areas[np.isfinite(covered)].sum() >= 0.5 * areas.sum():
+                own = True
+                break
+        out[name] = own and not merged
+    return out
+
+
 # ---------------------------------------------------------------------------------- phantom
 
 
 def make_phantom(config: PhantomConfig | None = None) -> Phantom:
-    """Build the ribcage for `config` (defaults: seed 0, 24 ribs, scale 1). Deterministic."""
+    """Build the ribcage for `config` (defaults: seed 0, 24 ribs, scale 1). Deterministic. With
+    config.sternum the sternum and costal cartilages are added; the ribs are the same either way."""
     config = config or PhantomConfig()
     _check_config(config)
     var = _variation(config.seed)
@@ -510,15 +859,19 @@ def make_phantom(config: PhantomConfig | None = None) -> Phantom:
     shift = np.array([0.0, -(lo[1] + hi[1]) / 2, -(lo[2] + hi[2]) / 2])
     flip = np.array([-1.0 if config.mirror else 1.0, 1.0, 1.0])
     ribs = []
+    tubes = {}  # output name -> tube (every rib when the structures need them, else those present)
     for out_side in ("L", "R"):
         for n in range(1, 13):
             name = f"{out_side}{n}"
-            if name in config.missing_ribs:
+            if name in config.missing_ribs and not config.sternum:
                 continue
             src_side = out_side if not config.mirror else ("R" if out_side == "L" else "L")
             fine, e0 = built[(src_side, n)]
             fine = (fine + shift) * flip * config.scale
             tube = _build_tube(fine, e0 * flip, config.scale)
+            tubes[name] = tube
+            if name in config.missing_ribs:
+                continue
             ribs.append(
                 Rib(
                     name=name,
@@ -530,25 +883,28 @@ def make_phantom(config: PhantomConfig | None = None) -> Phantom:
                     tube=tube,
                 )
             )
-    mesh = trimesh.util.concatenate([r.mesh for r in ribs])
-    return Phantom(config=config, ribs=ribs, mesh=mesh)
+    structures = _build_structures(tubes, config) if config.sternum else []
+    mesh = trimesh.util.concatenate([r.mesh for r in ribs] + [st.mesh for st in structures])
+    return Phantom(config=config, ribs=ribs, mesh=mesh, structures=structures)
 
 
 def sample_surface(phantom: Phantom, n_points: int, noise_mm: float = 0.3, seed: int = 0) -> PointCloud:
     """PointCloud of n_points (N, 3) mm samples uniform by area on the true surface (the truth
-    mesh), plus isotropic Gaussian noise of std noise_mm per axis. normals (N, 3): outward normals
-    of the analytic rib surface at the noise-free samples (`tube_normals`); labels (N,): label_id
-    of the rib sampled. The same seed gives the same samples whatever noise_mm is."""
+    mesh: ribs and, when present, sternum and cartilages), plus isotropic Gaussian noise of std
+    noise_mm per axis. normals (N, 3): outward normals of the analytic surface at the noise-free
+    samples (`tube_normals`); labels (N,): label_id of the rib / structure sampled. The same seed
+    gives the same samples whatever noise_mm is."""
     if int(n_points) < 1 or not noise_mm >= 0:
         raise RibPullInputError("bad_parameter", "n_points must be >= 1 and noise_mm >= 0")
     rng = np.random.default_rng(seed)
     pts, face = trimesh.sample.sample_surface(phantom.mesh, int(n_points), seed=rng)
     labels = phantom.face_labels()[face]
+    owner = phantom.face_solids()[face]
     normals = np.empty_like(pts)
-    for rib in phantom.ribs:
-        sel = labels == rib.label_id
+    for k, solid in enumerate(phantom.solids):
+        sel = owner == k
         if sel.any():
-            normals[sel] = tube_normals(rib, pts[sel])
+            normals[sel] = tube_normals(solid, pts[sel])
     noisy = pts + rng.normal(0.0, 1.0, pts.shape) * float(noise_mm)
     return PointCloud(
         points=noisy,
@@ -559,45 +915,141 @@ def sample_surface(phantom: Phantom, n_points: int, noise_mm: float = 0.3, seed:
     )
 
 
-def _ball_offsets(radius: float) -> np.ndarray:
-    """(K, 3) integer offsets within `radius` (voxel units) of the origin."""
-    r = int(np.ceil(radius))
-    g = np.mgrid[-r : r + 1, -r : r + 1, -r : r + 1].reshape(3, -1).T
-    return g[(g**2).sum(axis=1) <= radius * radius]
+def _spacing_xyz(spacing_mm: float | tuple[float, float, float]) -> np.ndarray:
+    """(3,) voxel size (mm) along x, y, z from one number or a 3-sequence; all must be > 0."""
+    sp = np.asarray(spacing_mm, dtype=np.float64).ravel()
+    sp = np.repeat(sp, 3) if sp.size == 1 else sp
+    if sp.shape != (3,) or not np.all(np.isfinite(sp) & (sp > 0)):
+        raise RibPullInputError(
+            "bad_parameter", f"spacing_mm must be > 0 (one number or three), got {spacing_mm}"
+        )
+    return sp.copy()
+
+
+def _ellipsoid_offsets(radius_mm: float, spacing: np.ndarray) -> np.ndarray:
+    """(K, 3) integer voxel offsets whose centres lie within radius_mm of the origin (voxel size
+    spacing (3,) mm)."""
+    r = np.ceil(radius_mm / spacing).astype(int)
+    g = np.mgrid[-r[0] : r[0] + 1, -r[1] : r[1] + 1, -r[2] : r[2] + 1].reshape(3, -1).T
+    return g[((g * spacing) ** 2).sum(axis=1) <= radius_mm * radius_mm]
+
+
+def _candidate_voxels(
+    tube: Tube, lo: np.ndarray, spacing: np.ndarray, shape: tuple[int, int, int], margin_mm: float
+) -> np.ndarray:
+    """(K, 3) int indices of the voxels (grid origin lo (3,) mm, voxel size spacing (3,) mm) whose
+    centres lie within the tube's largest semi-axis + margin_mm (+ half a curve step) of its
+    centerline: a superset of the voxels whose centre (margin = half a voxel diagonal) or any part
+    (margin = a diagonal) is inside the tube."""
+    reach = float(max(tube.a_v_mm.max(), tube.a_t_mm.max(), tube.cap_mm.max()))
+    curve = _resample(tube.points_mm, step=float(spacing.max()))
+    step = float(np.linalg.norm(curve[1] - curve[0]))
+    offsets = _ellipsoid_offsets(reach + step / 2 + margin_mm, spacing)
+    centre_idx = np.rint((curve - lo) / spacing).astype(int)
+    base = centre_idx.min(axis=0) - offsets.max(axis=0)
+    box = np.zeros(centre_idx.max(axis=0) + offsets.max(axis=0) - base + 1, dtype=bool)
+    for chunk in np.array_split(
+        np.arange(len(centre_idx)), max(1, len(centre_idx) * len(offsets) // 2_000_000)
+    ):
+        cand = (centre_idx[chunk] - base)[:, None, :] + offsets[None, :, :]
+        box[cand[..., 0].ravel(), cand[..., 1].ravel(), cand[..., 2].ravel()] = True
+    ijk = np.argwhere(box) + base
+    return ijk[np.all((ijk >= 0) & (ijk < np.array(shape)), axis=1)]
+
+
+PV_SUBSTEP_MM = 0.375  # partial volume: sub-sample spacing (at most), an odd count >= 3 per axis
+PV_SAFETY = 0.7  # partial volume: factor on the distance bounds that skip whole voxels (curvature, taper)
+
+
+def _subvoxel_offsets(spacing: np.ndarray) -> np.ndarray:
+    """(K, 3) sub-sample positions (mm) relative to a voxel centre: a regular grid of an odd number
+    (>= 3, <= PV_SUBSTEP_MM apart) of cell-centred points per axis (odd: a plane through the centre
+    splits them unevenly, so "more than half" never ties)."""
+    counts = [max(3, int(np.ceil(sp / PV_SUBSTEP_MM - 1e-9)) | 1) for sp in spacing]
+    axes = [((np.arange(k) + 0.5) / k - 0.5) * sp for k, sp in zip(counts, spacing)]
+    return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+
+
+def _inside_fractions(tube: Tube, centres_mm: np.ndarray, spacing: np.ndarray) -> np.ndarray:
+    """(N,) fraction of the volume of each voxel (centres (N, 3) mm, size spacing (3,) mm) inside the
+    tube's analytic solid, estimated on `_subvoxel_offsets` sub-samples.
+
+    Voxels whose centre is provably more than half a diagonal from the surface are 1 or 0 outright
+    (outside: level convexity gives distance >= (rho - 1) / |grad rho|; inside: the level is
+    1 / min(semi-axis)-Lipschitz, distance >= (1 - rho) * min semi-axis; both times PV_SAFETY).
+    The others are sub-sampled in the tube's local frame at the centre's foot point, linearised
+    (the foot point slides along the tangent; curvature is neglected: < 0.03 mm at these offsets)."""
+    loc = _tube_local(tube, centres_mm)
+    v, w, t, av, at = loc["v"], loc["w"], loc["t"], loc["av"], loc["at"]
+    rho2 = (v / av) ** 2 + (w / at) ** 2
+    grad2 = (v / av**2) ** 2 + (w / at**2) ** 2
+    a_min = np.minimum(av, at)
+    for mask, c in ((loc["head"], tube.cap_mm[0]), (loc["tip"], tube.cap_mm[1])):
+        rho2[mask] += (t[mask] / c) ** 2
+        grad2[mask] += (t[mask] / c**2) ** 2
+        a_min[mask] = np.minimum(a_min[mask], c)
+    rho = np.sqrt(rho2)
+    grad = np.sqrt(grad2) / np.maximum(rho, 1e-12)
+    dist_lb = np.where(rho > 1.0, (rho - 1.0) / np.maximum(grad, 1e-12), (1.0 - rho) * a_min) * PV_SAFETY
+    frac = (rho <= 1.0).astype(np.float64)
+    band = np.nonzero(dist_lb <= 0.5 * float(np.linalg.norm(spacing)))[0]
+    sub = _subvoxel_offsets(spacing)  # (K, 3)
+    m = len(tube.points_mm)
+    arc = np.arange(m) * tube.step_mm
+    length = arc[-1]
+    for chunk in np.array_split(band, max(1, len(band) * len(sub) // 4_000_000)):
+        sv = v[chunk, None] + loc["ev"][chunk] @ sub.T  # (n, K) local coordinates of the sub-samples
+        sw = w[chunk, None] + loc["et"][chunk] @ sub.T
+        s_arc = (loc["fi"][chunk] * tube.step_mm + t[chunk])[:, None] + loc["tg"][chunk] @ sub.T
+        s_in = np.clip(s_arc, 0.0, length)
+        r2 = (sv / np.interp(s_in, arc, tube.a_v_mm)) ** 2 + (sw / np.interp(s_in, arc, tube.a_t_mm)) ** 2
+        r2 += (np.maximum(s_arc - length, 0.0) / tube.cap_mm[1]) ** 2 + (
+            np.maximum(-s_arc, 0.0) / tube.cap_mm[0]
+        ) ** 2
+        frac[chunk] = (r2 <= 1.0).mean(axis=1)
+    return frac
 
 
 def voxelize(
-    phantom: Phantom, spacing_mm: float = 1.0, padding_mm: float = 10.0
+    phantom: Phantom,
+    spacing_mm: float | tuple[float, float, float] = 1.0,
+    padding_mm: float = 10.0,
+    partial_volume: bool = False,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Label volume of the phantom: (X, Y, Z) uint8 with label_id inside each rib, 0 elsewhere, and
-    its voxel -> mm affine (4, 4) (diagonal spacing_mm, axes along +x, +y, +z). A voxel is set iff
-    its centre lies inside the rib's analytic solid (`tube_level` <= 1). The grid covers the
-    mesh's bounding box plus padding_mm on every side."""
-    if not (spacing_mm > 0 and padding_mm >= 0):
+    """Label volume of the phantom: (X, Y, Z) uint8 with the label_id of each rib / structure inside
+    it, 0 elsewhere, and its voxel -> mm affine (4, 4) (diagonal = the voxel size, axes along +x,
+    +y, +z). spacing_mm: one voxel size or (sx, sy, sz) mm, e.g. (0.75, 0.75, 2.5). The grid covers
+    the mesh's bounding box plus padding_mm on every side.
+
+    partial_volume=False: a voxel is set iff its centre lies inside the solid's analytic model
+    (`tube_level` <= 1). True: iff more than half of its volume does (`_inside_fractions`,
+    odd sub-sample grids <= 0.375 mm apart); where two solids claim a voxel the larger fraction wins."""
+    spacing = _spacing_xyz(spacing_mm)
+    if not padding_mm >= 0:
         raise RibPullInputError("bad_parameter", "spacing_mm must be > 0 and padding_mm >= 0")
     lo = phantom.mesh.bounds[0] - padding_mm
     hi = phantom.mesh.bounds[1] + padding_mm
-    shape = tuple(int(k) for k in np.ceil((hi - lo) / spacing_mm).astype(int) + 1)
-    affine = np.diag([spacing_mm, spacing_mm, spacing_mm, 1.0])
+    shape = tuple(int(k) for k in np.ceil((hi - lo) / spacing).astype(int) + 1)
+    affine = np.diag([*spacing, 1.0])
     affine[:3, 3] = lo
     vol = np.zeros(shape, dtype=np.uint8)
-    for rib in phantom.ribs:
-        tube = rib.tube
-        reach = float(max(tube.a_v_mm.max(), tube.a_t_mm.max(), tube.cap_mm.max()))
-        curve = _resample(tube.points_mm, step=spacing_mm)
-        step = float(np.linalg.norm(curve[1] - curve[0]))
-        offsets = _ball_offsets((reach + step / 2) / spacing_mm + np.sqrt(3) / 2 + 1e-6)
-        centre_idx = np.rint((curve - lo) / spacing_mm).astype(int)
-        base = centre_idx.min(axis=0) - offsets.max()
-        box_shape = centre_idx.max(axis=0) + offsets.max() - base + 1
-        box = np.zeros(box_shape, dtype=bool)
-        cand = (centre_idx - base)[:, None, :] + offsets[None, :, :]
-        box[cand[..., 0].ravel(), cand[..., 1].ravel(), cand[..., 2].ravel()] = True
-        ijk = np.argwhere(box) + base
-        ijk = ijk[np.all((ijk >= 0) & (ijk < np.array(shape)), axis=1)]
-        inside = tube_level(rib, lo + ijk * spacing_mm) <= 1.0
-        ijk = ijk[inside]
-        vol[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = rib.label_id
+    best = np.zeros(shape, dtype=np.float32) if partial_volume else None
+    half_diag = 0.5 * float(np.linalg.norm(spacing))
+    for solid in phantom.solids:
+        margin = (2.0 if partial_volume else 1.0) * half_diag + 1e-6 * float(spacing.min())
+        ijk = _candidate_voxels(solid.tube, lo, spacing, shape, margin)
+        xyz = lo + ijk * spacing
+        if not partial_volume:
+            ijk = ijk[tube_level(solid, xyz) <= 1.0]
+            vol[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = solid.label_id
+            continue
+        frac = _inside_fractions(solid.tube, xyz, spacing)
+        keep = frac > 0.5
+        ijk, frac = ijk[keep], frac[keep]
+        wins = frac > best[ijk[:, 0], ijk[:, 1], ijk[:, 2]]
+        ijk, frac = ijk[wins], frac[wins]
+        vol[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = solid.label_id
+        best[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = frac
     return vol, affine
 
 
@@ -613,11 +1065,16 @@ def centerlines_json(phantom: Phantom) -> dict:
 
 
 def write_phantom(
-    outdir: str | Path, config: PhantomConfig | None = None, nifti: bool = False, spacing_mm: float = 1.0
+    outdir: str | Path,
+    config: PhantomConfig | None = None,
+    nifti: bool = False,
+    spacing_mm: float | tuple[float, float, float] = 1.0,
+    partial_volume: bool = False,
 ) -> dict[str, Path]:
     """Write a phantom to outdir: points.ply (config.n_points noisy samples with normals and labels),
-    truth_mesh.ply, centerlines.json and, when nifti, mask.nii.gz (uint8 labels, spacing_mm voxels).
-    Returns {"points", "truth_mesh", "centerlines"[, "mask"]} -> path."""
+    truth_mesh.ply (ribs, then sternum and cartilages with config.sternum), centerlines.json (ribs)
+    and, when nifti, mask.nii.gz (uint8 labels; voxels of spacing_mm, one size or (sx, sy, sz) mm;
+    `voxelize` with partial_volume). Returns {"points", "truth_mesh", "centerlines"[, "mask"]} -> path."""
     config = config or PhantomConfig()
     outdir = Path(outdir)
     outdir.mkdir(parents=True, exist_ok=True)
@@ -641,7 +1098,7 @@ def write_phantom(
     if nifti:
         import nibabel as nib
 
-        vol, affine = voxelize(phantom, spacing_mm=spacing_mm)
+        vol, affine = voxelize(phantom, spacing_mm=spacing_mm, partial_volume=partial_volume)
         img = nib.Nifti1Image(vol, affine)
         img.set_qform(affine, code=1)
         img.set_sform(affine, code=1)

@@ -1,4 +1,5 @@
-"""Tests of the synthetic ribcage: names, watertight meshes, exact truth, sampling, voxels, gaps."""
+"""Tests of the synthetic ribcage: names, watertight meshes, exact truth, sampling, voxels, gaps;
+sternum and costal cartilages, separable / isolated ribs, partial-volume anisotropic label maps."""
 
 from __future__ import annotations
 
@@ -17,9 +18,14 @@ from ribpull_core.errors import RibPullInputError
 from ribpull_core.phantom import (
     RIB_NAMES,
     PhantomConfig,
+    Tube,
+    isolated_ribs,
     make_phantom,
+    rib_gaps_mm,
     sample_surface,
+    separable_ribs,
     tube_level,
+    tube_mesh,
     voxelize,
     write_phantom,
 )
@@ -338,3 +344,281 @@ def test_write_phantom(tmp_path):
     assert set(np.unique(data)) == {0, 92, 98, 115}
     with pytest.raises(RibPullInputError):
         write_phantom(tmp_path / "bad", PhantomConfig(scale=0.0))
+
+
+# ------------------------------------------------------------------ sternum and cartilages
+
+
+@pytest.fixture(scope="module")
+def sternum_phantom():
+    return make_phantom(PhantomConfig(sternum=True))
+
+
+def test_sternum_keeps_ribs_and_adds_structures(phantom, sternum_phantom):
+    sp = sternum_phantom
+    assert [r.name for r in sp.ribs] == list(RIB_NAMES)
+    for a, b in zip(phantom.ribs, sp.ribs):  # the ribs are exactly the same
+        assert np.array_equal(a.centerline_mm, b.centerline_mm) and np.array_equal(
+            a.mesh.vertices, b.mesh.vertices
+        )
+    assert sp.centerlines().keys() == phantom.centerlines().keys()  # centerlines: ribs only
+    names = [s.name for s in sp.structures]
+    assert names[0] == "sternum" and sorted(names[1:]) == sorted(
+        f"costal_cartilage_{s}{n}" for s in "LR" for n in range(1, 11)
+    )
+    assert {s.label_id for s in sp.structures} == {116, 117} and sp.structures[0].label_id == 116
+    assert sp.label_names()[116] == "sternum" and sp.label_names()[117] == "costal_cartilages"
+    assert 116 not in phantom.label_names() and phantom.structures == []
+    # truth mesh: ribs then structures, one closed component each, labelled per face
+    assert n_components(sp.mesh) == 24 + 21
+    counts = np.bincount(sp.face_labels(), minlength=118)
+    assert counts[116] == len(sp.structures[0].mesh.faces)
+    assert counts[117] == sum(len(s.mesh.faces) for s in sp.structures[1:])
+    assert len(sp.face_labels()) == len(sp.mesh.faces)
+    for s in sp.structures:
+        assert s.mesh.is_watertight and s.mesh.is_winding_consistent and s.mesh.volume > 300, s.name
+        assert n_components(s.mesh) == 1, s.name
+        assert inside_by_ray_parity(s.mesh, s.tube.points_mm[:: max(1, len(s.tube.points_mm) // 8)]).all(), (
+            s.name
+        )
+    # sternum: on the midline, anterior, 150-180 mm long, 25-40 mm wide, 10-12 mm thick
+    st = sp.structures[0]
+    lo, hi = st.mesh.bounds
+    assert abs(lo[0] + hi[0]) < 0.1 and 25 < hi[0] - lo[0] < 40
+    length = np.linalg.norm(st.tube.points_mm[-1] - st.tube.points_mm[0]) + st.tube.cap_mm.sum()
+    assert 150 < length < 180
+    thickness = np.ptp(st.mesh.vertices @ st.tube.e_t[len(st.tube.e_t) // 2])
+    assert 10 <= thickness <= 12
+    tips_y = [r.centerline_mm[-1, 1] for r in sp.ribs if r.number <= 7]
+    assert st.tube.points_mm[:, 1].min() > np.min(tips_y)  # in front of the ribs' tips
+    # every cartilage lies medial of its rib's tip (towards the sternum) and outside every other solid
+    for s in sp.structures[1:]:
+        rib = sp.ribs[RIB_NAMES.index(s.rib)]
+        assert np.abs(s.tube.points_mm[-1, 0]) < np.abs(rib.centerline_mm[-1, 0]), s.name
+        for other in sp.solids:
+            if other is not s:
+                assert tube_level(other, s.mesh.vertices[::7]).min() > 1.0, (
+                    s.name,
+                    getattr(other, "name", ""),
+                )
+
+
+def test_sternum_samples_labels_and_normals(sternum_phantom):
+    sp = sternum_phantom
+    pc = sample_surface(sp, 30_000, noise_mm=0.0, seed=3)
+    assert pc.label_names[116] == "sternum" and pc.label_names[117] == "costal_cartilages"
+    for label in (116, 117):
+        sel = pc.labels == label
+        area = sum(s.mesh.area for s in sp.structures if s.label_id == label)
+        assert abs(sel.mean() - area / sp.mesh.area) < 0.01
+        p, n = pc.points[sel], pc.normals[sel]
+        solids = [s for s in sp.structures if s.label_id == label]
+        levels = np.stack([tube_level(s, p) for s in solids])  # (solids, N)
+        owner = levels.argmin(axis=0)
+        assert np.abs(levels.min(axis=0) - 1).max() < 0.01  # on the analytic surface
+        for k, solid in enumerate(solids):  # normals = the level's outward gradient (finite differences)
+            q, nq = p[owner == k], n[owner == k]
+            h = 1e-3
+            grad = np.stack(
+                [(tube_level(solid, q + h * e) - tube_level(solid, q - h * e)) / (2 * h) for e in np.eye(3)],
+                axis=1,
+            )
+            grad /= np.linalg.norm(grad, axis=1, keepdims=True)
+            assert np.sum(grad * nq, axis=1).min() > 0.995, solid.name
+            assert np.all(tube_level(solid, q + 0.3 * nq) > 1.0) and np.all(
+                tube_level(solid, q - 0.3 * nq) < 1.0
+            )
+    # rib samples unaffected in kind: still on their rib's surface
+    r = sp.ribs[6]
+    sel = pc.labels == r.label_id
+    assert sel.sum() > 100 and np.abs(tube_level(r, pc.points[sel]) - 1).max() < 0.01
+
+
+def test_cartilage_gaps_and_separable_ribs(phantom, sternum_phantom):
+    sp = sternum_phantom
+    designed = sp.cartilage_gaps_mm
+    assert sorted(designed) == sorted(f"{s}{n}" for s in "LR" for n in range(1, 11))
+    for s in sp.structures[1:]:
+        rib = sp.ribs[RIB_NAMES.index(s.rib)]
+        # independent of rib_gaps_mm: the poles of rib tip and cartilage start are mesh vertices
+        d = cKDTree(rib.mesh.vertices).query(s.mesh.vertices)[0].min()
+        assert 1.0 <= d <= 3.5 and abs(d - s.gap_mm) < 0.02, (s.name, d, s.gap_mm)
+    gaps = rib_gaps_mm(sp)
+    for name, gap in gaps.items():
+        if name in designed:  # the nearest other structure is the rib's own cartilage, at the designed gap
+            assert abs(gap - designed[name]) < 0.05, (name, gap, designed[name])
+        else:  # floating ribs 11-12: nothing within 5 mm
+            assert gap == np.inf and name[1:] in ("11", "12")
+    separable = separable_ribs(sp, min_gap_mm=1.5)
+    expected = [n for n in RIB_NAMES if designed.get(n, np.inf) >= 1.5]
+    assert separable == expected
+    assert 0 < len(RIB_NAMES) - len(separable) == 4  # a strict, non-empty subset: 4 ribs are too close
+    assert separable_ribs(sp, min_gap_mm=3.1) == [n for n in RIB_NAMES if n[1:] in ("11", "12")]
+    assert min(gaps.values()) >= 1.0  # at 0.8 mm every rib is separable
+    assert separable_ribs(phantom) == list(RIB_NAMES)  # ribs alone are >= 6 mm apart
+
+
+def _merged_with_cartilage(sp, rib_name: str) -> trimesh.Trimesh:
+    """Truth mesh in which rib_name and its cartilage are one tube (the gap filled, one component)."""
+    rib = sp.ribs[RIB_NAMES.index(rib_name)]
+    cart = next(s for s in sp.structures if s.rib == rib_name)
+    a, b = rib.tube, cart.tube
+
+    def cat(k):
+        return np.concatenate([getattr(a, k), getattr(b, k)])
+
+    tube = Tube(cat("points_mm"), cat("tangents"), cat("e_v"), cat("e_t"), cat("a_v_mm"), cat("a_t_mm"),
+                np.array([a.cap_mm[0], b.cap_mm[1]]), a.step_mm)  # fmt: skip
+    merged = tube_mesh(tube, n_rings=600)
+    assert merged.is_watertight and n_components(merged) == 1
+    others = [s.mesh for s in sp.solids if s is not rib and s is not cart]
+    return trimesh.util.concatenate(others + [merged])
+
+
+def test_isolated_ribs(sternum_phantom):
+    sp = sternum_phantom
+    iso = isolated_ribs(sp.mesh, sp)
+    assert iso == {n: True for n in RIB_NAMES}  # the truth keeps every rib apart, separable or not
+    merged = _merged_with_cartilage(sp, "L7")
+    iso = isolated_ribs(merged, sp)
+    assert iso["L7"] is False and all(v for k, v in iso.items() if k != "L7")
+    # a missing rib is not isolated (no component covers it); names restricts the answer
+    keep = [s.mesh for s in sp.solids if getattr(s, "name", "") != "R3"]
+    assert isolated_ribs(trimesh.util.concatenate(keep), sp, names=["R3", "R4"]) == {"R3": False, "R4": True}
+    with pytest.raises(RibPullInputError):
+        isolated_ribs(sp.mesh, sp, names=["X1"])
+
+
+def test_sternum_with_missing_and_mirrored_ribs():
+    ph = make_phantom(PhantomConfig(sternum=True, mirror=True, missing_ribs=("L3", "R12")))
+    names = [s.name for s in ph.structures]
+    assert "costal_cartilage_L3" not in names and len(names) == 20 and names[0] == "sternum"
+    assert n_components(ph.mesh) == 22 + 20
+    ref = make_phantom(PhantomConfig(mirror=True, missing_ribs=("L3", "R12")))
+    assert all(np.array_equal(a.centerline_mm, b.centerline_mm) for a, b in zip(ph.ribs, ref.ribs))
+    gaps = rib_gaps_mm(ph)
+    assert all(abs(gaps[k] - g) < 0.05 for k, g in ph.cartilage_gaps_mm.items())
+
+
+# ----------------------------------------------------------- partial-volume, anisotropic voxels
+
+
+def _check_partial_volume(sp, spacing):
+    vol, aff = voxelize(sp, spacing_mm=spacing, partial_volume=True)
+    sp3 = np.broadcast_to(np.asarray(spacing, float), (3,))
+    assert np.allclose(np.diag(aff)[:3], sp3) and np.allclose(aff[:3, :3], np.diag(sp3))
+    assert set(np.unique(vol)) == {0, 116, 117} | set(range(92, 116))
+    voxel_mm3 = float(np.prod(sp3))
+    counts = np.bincount(vol.ravel(), minlength=118) * voxel_mm3
+    for r in sp.ribs:
+        assert abs(counts[r.label_id] / r.mesh.volume - 1) < 0.03, (r.name, counts[r.label_id], r.mesh.volume)
+    assert abs(counts[116] / sp.structures[0].mesh.volume - 1) < 0.02
+    assert abs(counts[117] / sum(s.mesh.volume for s in sp.structures[1:]) - 1) < 0.03
+    # "more than half of the voxel inside": brute-force fractions (9 x 9 x 9 sub-points) of random voxels
+    # next to the surfaces of a few solids, independent of the implementation's sub-sampling
+    rng = np.random.default_rng(1)
+    grid = (np.stack(np.meshgrid(*[np.arange(9)] * 3, indexing="ij"), -1).reshape(-1, 3) + 0.5) / 9 - 0.5
+    checked = 0
+    for solid in (sp.ribs[0], sp.ribs[18], sp.structures[0], sp.structures[7]):
+        v = solid.mesh.vertices[rng.choice(len(solid.mesh.vertices), 150, replace=False)]
+        v = v + rng.uniform(-1, 1, v.shape) * sp3
+        ijk = np.unique(np.rint((v - aff[:3, 3]) / sp3).astype(int), axis=0)
+        centres = aff[:3, 3] + ijk * sp3
+        sub = (centres[:, None, :] + grid[None] * sp3).reshape(-1, 3)
+        frac = (tube_level(solid, sub) <= 1.0).reshape(len(ijk), -1).mean(axis=1)
+        clear = np.abs(frac - 0.5) > 0.08  # leave out near-ties (the sub-sampling estimate differs there)
+        labelled = vol[tuple(ijk.T)] == solid.label_id
+        assert np.array_equal(labelled[clear], frac[clear] > 0.5), solid.name
+        checked += clear.sum()
+    assert checked > 300
+    # where the majority rule and the centre test disagree (curved surfaces), the majority is right
+    centre_vol, _ = voxelize(sp, spacing_mm=spacing)
+    assert centre_vol.shape == vol.shape
+    solid_of = {s.label_id: s for s in sp.solids if s.label_id != 117}  # one solid per label
+    diff = np.argwhere((vol != centre_vol) & (vol != 117) & (centre_vol != 117))
+    diff = diff[rng.choice(len(diff), min(400, len(diff)), replace=False)]
+    agree = n = 0
+    for ijk in diff:
+        label = int(vol[tuple(ijk)] or centre_vol[tuple(ijk)])
+        sub = aff[:3, 3] + ijk * sp3 + grid * sp3
+        frac = (tube_level(solid_of[label], sub) <= 1.0).mean()
+        if abs(frac - 0.5) > 0.03:
+            n += 1
+            agree += (vol[tuple(ijk)] == label) == (frac > 0.5)
+    assert n > 50 and agree / n > 0.9, (n, agree)
+    return vol
+
+
+def test_partial_volume_isotropic(sternum_phantom):
+    _check_partial_volume(sternum_phantom, 1.5)
+
+
+def test_partial_volume_anisotropic(sternum_phantom):
+    _check_partial_volume(sternum_phantom, (0.75, 0.75, 2.5))
+
+
+def test_voxelize_tuple_spacing_and_errors(phantom):
+    a, aff_a = voxelize(phantom, spacing_mm=2.0)
+    b, aff_b = voxelize(phantom, spacing_mm=(2.0, 2.0, 2.0))
+    assert np.array_equal(a, b) and np.array_equal(aff_a, aff_b)
+    c, aff_c = voxelize(phantom, spacing_mm=(1.5, 2.0, 3.0))
+    assert np.allclose(np.diag(aff_c)[:3], (1.5, 2.0, 3.0))
+    ext = np.array(c.shape) * (1.5, 2.0, 3.0)
+    assert np.allclose(ext, np.array(a.shape) * 2.0, atol=3.1)  # same box, other voxels
+    for bad in (0.0, (1.0, -1.0, 1.0), (1.0, 2.0)):
+        with pytest.raises(RibPullInputError):
+            voxelize(phantom, spacing_mm=bad)
+
+
+def test_write_phantom_sternum_anisotropic_and_cli(tmp_path):
+    present = ("L1", "L7", "R10")
+    missing = tuple(n for n in RIB_NAMES if n not in present)
+    cfg = PhantomConfig(n_points=3000, missing_ribs=missing, sternum=True)
+    paths = write_phantom(tmp_path / "a", cfg, nifti=True, spacing_mm=(1.5, 1.5, 3.0), partial_volume=True)
+    img = nib.load(paths["mask"])
+    assert np.allclose(img.header.get_zooms(), (1.5, 1.5, 3.0))
+    assert set(np.unique(np.asarray(img.dataobj))) == {0, 92, 98, 113, 116, 117}
+    truth = trimesh.load(paths["truth_mesh"], process=False)
+    assert truth.is_watertight and n_components(truth) == 3 + 1 + 3
+    pts = trimesh.load(paths["points"])
+    assert len(pts.vertices) == 3000
+    cl = json.loads(paths["centerlines"].read_text())
+    assert sorted(cl["ribs"]) == sorted(present)  # centerlines stay ribs only
+
+    from ribpull_core.cli import main
+
+    out = tmp_path / "cli"
+    rc = main(["phantom", str(out), "--points", "500", "--sternum", "--nifti", "--partial-volume",
+               "--spacing", "2,2,3", "--missing", *missing])  # fmt: skip
+    assert rc == 0
+    img = nib.load(out / "mask.nii.gz")
+    assert np.allclose(img.header.get_zooms(), (2.0, 2.0, 3.0))
+    assert {116, 117} <= set(np.unique(np.asarray(img.dataobj)))
+    for bad in ("2,2", "0", "a,b,c"):
+        with pytest.raises(SystemExit) as err:
+            main(["phantom", str(out), "--spacing", bad])
+        assert err.value.code == 2
+
+
+@pytest.mark.parametrize("spacing", [3.0, (2.0, 2.0, 4.0)])
+def test_partial_volume_majority_rule_on_coarse_voxels(spacing):
+    """Coarse voxels on one rib: the label is set iff a brute-force 7 x 7 x 7 estimate of the inside
+    fraction is > 1/2, including voxels where that differs from the centre test."""
+    ph = make_phantom(PhantomConfig(missing_ribs=tuple(n for n in RIB_NAMES if n != "L7")))
+    rib = ph.ribs[0]
+    vol, aff = voxelize(ph, spacing_mm=spacing, partial_volume=True)
+    centre_vol, _ = voxelize(ph, spacing_mm=spacing)
+    sp3 = np.diag(aff)[:3]
+    ijk = np.argwhere(np.ones(vol.shape, dtype=bool))
+    centres = aff[:3, 3] + ijk * sp3
+    near = cKDTree(rib.tube.points_mm).query(centres, distance_upper_bound=9.0)[0] < np.inf
+    ijk, centres = ijk[near], centres[near]
+    grid = (np.stack(np.meshgrid(*[np.arange(7)] * 3, indexing="ij"), -1).reshape(-1, 3) + 0.5) / 7 - 0.5
+    sub = (centres[:, None, :] + grid[None] * sp3).reshape(-1, 3)
+    frac = (tube_level(rib, sub) <= 1.0).reshape(len(ijk), -1).mean(axis=1)
+    clear = np.abs(frac - 0.5) > 0.05
+    labelled = vol[tuple(ijk.T)] == rib.label_id
+    centre_in = centre_vol[tuple(ijk.T)] == rib.label_id
+    assert np.array_equal(labelled[clear], frac[clear] > 0.5)
+    assert np.sum(clear & (centre_in != (frac > 0.5))) >= 3  # the centre test gets these wrong
+    assert np.all(frac[labelled] > 0.4) and np.all(frac[~labelled] < 0.6)  # near-ties only either way
