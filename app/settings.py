@@ -91,7 +91,7 @@ class Settings(BaseSettings):
     worker_max_memory_mb: int | None = Field(
         None, ge=64, description="A worker child whose resident memory passes this after a job is replaced "
                                  "(Celery max-memory-per-child); default RIBPULL_WORKER_MEMORY_MB / 2.")
-    cancel_grace_s: float = Field(2.0, gt=0, description="A cancel not honoured by the running stage within "
+    cancel_grace_s: float = Field(1.0, gt=0, description="A cancel not honoured by the running stage within "
                                                          "this is enforced by ending the worker child.")
     pipeline: str = Field(
         "ribpull_core.pipeline:run_pipeline",

@@ -22,7 +22,7 @@ import pytest
 pytestmark = pytest.mark.service
 
 UNCANCELLABLE_SEED = 4242
-GRACE_S = 2.0
+GRACE_S = 1.0  # the default: a cancel is honoured within 2 s at every stage
 
 
 def pipeline(input_path, outdir, options, progress=None, should_cancel=None):
@@ -92,7 +92,10 @@ def test_child_recycled_after_a_job_that_grew_its_memory(stack):
     pid_b = _worker_pid_of(stack, b["id"])
     assert pid_a != pid_b, "the pool process was not replaced after passing max-memory-per-child"
     deadline = time.monotonic() + 60
-    while time.monotonic() < deadline and pid_b in pool_children(stack.worker):
+    while time.monotonic() < deadline:
+        kids = pool_children(stack.worker)
+        if kids and pid_b not in kids:
+            break
         time.sleep(0.5)
     kids = pool_children(stack.worker)
     assert pid_b not in kids and kids, kids
@@ -111,7 +114,7 @@ def test_cancel_enforced_within_grace_in_a_stage_that_ignores_it(stack):
     assert c.delete(f"/v1/jobs/{jid}").status_code == 202
     job = wait_job(c, jid, "canceled", timeout=30, stack=stack)
     took = time.monotonic() - t
-    assert took < GRACE_S + 2.0, f"cancel took {took:.1f} s"
+    assert took < 2.0, f"cancel took {took:.1f} s"
     assert job["status"] == "canceled"
     # the redelivered message must not run it again, and the worker takes the next job
     nxt = _run(stack, FAST)
