@@ -85,7 +85,7 @@ def _maintenance_loop() -> None:
     from app.db import make_sessionmaker
     from app.jobs import celery_client, enqueue
 
-    from .state import sweep, worker_id
+    from app.state import sweep, worker_id
 
     key = WORKER_KEY_PREFIX + worker_id()
     r = redis.Redis.from_url(settings.redis_url, socket_timeout=5, socket_connect_timeout=5)

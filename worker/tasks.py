@@ -24,7 +24,8 @@ from app.schemas import finite_or_none, json_safe
 from app.settings import Settings
 from app.storage import ARTIFACT_MEDIA_TYPES, artifacts_dir, input_file, job_dir
 
-from . import state
+from app import state
+
 from . import celery_app as _capp
 from .celery_app import celery_app, configure_torch, settings
 from .webhooks import backoff_s, deliver_once
