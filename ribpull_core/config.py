@@ -48,6 +48,21 @@ class MetricsConfig:
 
 
 @dataclass
+class LabelMapConfig:
+    """How a NIfTI label map becomes training data (the load stage).
+
+    boundary_sigma_mm: the fitted points are the centres of the voxel faces between selected and
+    unselected voxels; when > 0 each moves along its axis to where the mask, smoothed by a Gaussian
+    of this std (mm), crosses 0.5 (a sub-voxel boundary instead of the staircase).
+    band_voxels: voxel centres within this many voxels of the boundary become known-occupancy
+    samples (inside / outside) for methods that use them; 0 disables.
+    """
+
+    boundary_sigma_mm: float = 0.0
+    band_voxels: float = 0.0
+
+
+@dataclass
 class FitConfig:
     """Everything one fit needs. `method_config` is the method's own dataclass."""
 
@@ -57,6 +72,7 @@ class FitConfig:
     mesh: MeshConfig = field(default_factory=MeshConfig)
     sdf: SdfConfig = field(default_factory=SdfConfig)
     metrics: MetricsConfig = field(default_factory=MetricsConfig)
+    label_map: LabelMapConfig = field(default_factory=LabelMapConfig)
     seed: int = 0
 
     def to_dict(self) -> dict:

@@ -172,8 +172,14 @@ def fit_field(cloud, fit_config, device, report: _Reporter):
         report("fit", p.iteration / max(1, p.iterations), iteration=p.iteration, iterations=p.iterations, loss=p.loss,
                message=p.message)
 
+    known = None
+    if cloud.occupancy_points is not None:
+        from .methods.base import KnownOccupancy
+
+        known = KnownOccupancy(frame.to_unit(cloud.occupancy_points).astype(np.float32), cloud.occupancy_inside,
+                               np.asarray(cloud.occupancy_distance_mm) / frame.half_extent_mm)
     field = method.fit(frame.to_unit(cloud.points).astype(np.float32), device, progress=on_fit,
-                       should_cancel=report.should_cancel)
+                       should_cancel=report.should_cancel, known=known)
     return field, frame
 
 
@@ -192,7 +198,7 @@ def run_pipeline(
     """
     from .io import load_point_cloud
     from .methods import build_fit_config
-    from .pointcloud import mask_boundary_cloud
+    from .pointcloud import mask_band_samples, mask_boundary_cloud
 
     options = options or PipelineOptions()
     report = _Reporter(progress, should_cancel)
@@ -229,7 +235,10 @@ def run_pipeline(
                                      max_file_bytes=options.max_file_bytes, units=options.units)
             if cloud.nifti_affine is not None:
                 # a label map's voxel centres fill the solid: fit (and score against) its boundary
-                cloud = mask_boundary_cloud(cloud, seed=options.seed)
+                lm = fit_config.label_map
+                if lm.band_voxels > 0:  # voxel centres near the boundary: occupancy the map states
+                    cloud = mask_band_samples(cloud, width_voxels=lm.band_voxels, seed=options.seed)
+                cloud = mask_boundary_cloud(cloud, seed=options.seed, subvoxel_sigma_mm=lm.boundary_sigma_mm)
             reference, reference_name = _reference_for_metrics(options, cloud)
         with timed("fit"):
             field, frame = fit_field(cloud, fit_config, device, report)

@@ -6,9 +6,11 @@ by the header affine, as nibabel reads it).
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy import ndimage
 
 
 @dataclass
@@ -33,6 +35,11 @@ class PointCloud:
     nifti_affine: np.ndarray | None = None
     nifti_shape: tuple[int, int, int] | None = None
     label_names: dict[int, str] = field(default_factory=dict)
+    #: known occupancy, e.g. a label map's voxel centres near its boundary: (M, 3) mm and (M,) bool
+    #: inside, with (M,) mm distance to the nearest voxel of the other class (`mask_band_samples`)
+    occupancy_points: np.ndarray | None = None
+    occupancy_inside: np.ndarray | None = None
+    occupancy_distance_mm: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.points = np.ascontiguousarray(self.points, dtype=np.float64).reshape(-1, 3)
@@ -61,7 +68,8 @@ def mask_voxel_indices(cloud: PointCloud) -> np.ndarray:
     return np.rint(transform_points(cloud.points, inverse)).astype(np.int64)
 
 
-def mask_boundary_cloud(cloud: PointCloud, max_points: int = 120_000, seed: int = 0) -> PointCloud:
+def mask_boundary_cloud(cloud: PointCloud, max_points: int = 120_000, seed: int = 0,
+                        subvoxel_sigma_mm: float = 0.0) -> PointCloud:
     """The surface a label map draws, as points: the centre of every voxel face between a selected
     voxel and an unselected neighbour (6-neighbourhood), in mm through the affine, each labelled with
     its selected voxel's label.
@@ -73,22 +81,28 @@ def mask_boundary_cloud(cloud: PointCloud, max_points: int = 120_000, seed: int 
     (docs/benchmarks.md). cloud: from a NIfTI label map (nifti_affine set). At most
     max_points faces are kept (a seeded uniform subset). Returns a PointCloud that keeps the cloud's
     affine, shape, source format/bytes and label names.
+
+    subvoxel_sigma_mm > 0 moves each face point along its axis to where the mask, smoothed by a
+    Gaussian of that std (mm, per axis through the voxel spacing), crosses 0.5 between the two voxel
+    centres: a sub-voxel estimate of the boundary instead of the staircase.
     """
-    ijk = mask_voxel_indices(cloud)
-    lo = ijk.min(axis=0) - 1
-    local = ijk - lo
-    shape = tuple(int(s) for s in local.max(axis=0) + 2)
-    inside = np.zeros(shape, dtype=bool)
-    inside[tuple(local.T)] = True
-    labels = np.zeros(shape, dtype=np.int32)
-    labels[tuple(local.T)] = cloud.labels if cloud.labels is not None else 1
+    inside, labels, lo = _mask_volume(cloud)
+    smooth = None
+    if subvoxel_sigma_mm > 0:
+        spacing = voxel_spacing_mm(cloud)
+        smooth = ndimage.gaussian_filter(inside.astype(np.float32), subvoxel_sigma_mm / spacing, mode="constant")
     centres, face_labels = [], []
     for axis in range(3):
         for step in (1, -1):
             neighbour_outside = ~np.roll(inside, -step, axis=axis)  # the padding keeps the roll from wrapping
             faces = np.argwhere(inside & neighbour_outside)
-            offset = np.zeros(3)
-            offset[axis] = 0.5 * step
+            offset = np.zeros((len(faces), 3))
+            offset[:, axis] = 0.5 * step
+            if smooth is not None:  # where the smoothed mask crosses 0.5 between the two centres
+                a = smooth[tuple(faces.T)]
+                b = smooth[tuple((faces + np.eye(3, dtype=int)[axis] * step).T)]
+                t = np.clip((a - 0.5) / np.maximum(a - b, 1e-6), 0.0, 1.0)
+                offset[:, axis] = t * step
             centres.append(faces + lo + offset)
             face_labels.append(labels[tuple(faces.T)])
     ijk_faces = np.concatenate(centres)
@@ -102,4 +116,51 @@ def mask_boundary_cloud(cloud: PointCloud, max_points: int = 120_000, seed: int 
                       labels=face_labels if cloud.labels is not None else None,
                       source_format=cloud.source_format, source_bytes=cloud.source_bytes,
                       nifti_affine=cloud.nifti_affine, nifti_shape=cloud.nifti_shape,
-                      label_names=dict(cloud.label_names))
+                      label_names=dict(cloud.label_names), occupancy_points=cloud.occupancy_points,
+                      occupancy_inside=cloud.occupancy_inside, occupancy_distance_mm=cloud.occupancy_distance_mm)
+
+
+def voxel_spacing_mm(cloud: PointCloud) -> np.ndarray:
+    """(3,) voxel edge lengths in mm of a label-map cloud (column norms of its affine)."""
+    return np.linalg.norm(np.asarray(cloud.nifti_affine, dtype=np.float64)[:3, :3], axis=0)
+
+
+def _mask_volume(cloud: PointCloud) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A label-map cloud back on a cropped grid with one empty voxel of padding: (inside (X, Y, Z)
+    bool, labels (X, Y, Z) int32, lo (3,) index of the crop's first voxel in the input volume)."""
+    ijk = mask_voxel_indices(cloud)
+    lo = ijk.min(axis=0) - 1
+    local = ijk - lo
+    shape = tuple(int(s) for s in local.max(axis=0) + 2)
+    inside = np.zeros(shape, dtype=bool)
+    inside[tuple(local.T)] = True
+    labels = np.zeros(shape, dtype=np.int32)
+    labels[tuple(local.T)] = cloud.labels if cloud.labels is not None else 1
+    return inside, labels, lo
+
+
+def mask_band_samples(cloud: PointCloud, width_voxels: float = 2.0, max_samples: int = 600_000,
+                      seed: int = 0) -> PointCloud:
+    """The cloud with its known occupancy set: every voxel centre (mm) within width_voxels voxels of
+    the label map's boundary, inside (selected) or outside, and each one's distance (mm, through the
+    voxel spacing per axis) to the nearest voxel centre of the other class.
+
+    A partial-volume label map marks a voxel when more than half of it is inside, which for a
+    locally planar surface is exactly "its centre is inside": the centres are occupancy samples.
+    At most max_samples (a seeded uniform subset)."""
+    from trimesh import transform_points
+
+    inside, _, lo = _mask_volume(cloud)
+    inside = np.pad(inside, int(np.ceil(width_voxels)) + 1)
+    lo = lo - (int(np.ceil(width_voxels)) + 1)
+    spacing = voxel_spacing_mm(cloud)
+    d_in = ndimage.distance_transform_edt(inside, sampling=spacing)  # inside centres -> nearest outside
+    d_out = ndimage.distance_transform_edt(~inside, sampling=spacing)
+    dist = np.where(inside, d_in, d_out)
+    band = dist <= width_voxels * float(spacing.max()) + 1e-6
+    ijk = np.argwhere(band)
+    if len(ijk) > max_samples:
+        ijk = ijk[np.sort(np.random.default_rng(seed).choice(len(ijk), max_samples, replace=False))]
+    pts = transform_points((ijk + lo).astype(np.float64), np.asarray(cloud.nifti_affine, dtype=np.float64))
+    return dataclasses.replace(cloud, occupancy_points=pts, occupancy_inside=inside[tuple(ijk.T)],
+                               occupancy_distance_mm=dist[tuple(ijk.T)])

@@ -7,12 +7,16 @@ resolution; `--method` swaps the method and keeps the preset name.
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 
-from ..config import FitConfig, MeshConfig
+from ..config import FitConfig, LabelMapConfig, MeshConfig
 from ..errors import RibPullInputError
 from .base import Method
 from .training import with_schedule
+
+#: label maps: std (mm) of the smoothing that places the boundary points between voxel centres
+LABEL_MAP_SIGMA_MM = 1.0
 
 #: method name -> "module:Class"
 METHOD_CLASSES = {
@@ -21,11 +25,11 @@ METHOD_CLASSES = {
     "digs": "ribpull_core.methods.digs:DiGS",
 }
 
-#: run preset -> (default method, finest marching-cubes resolution)
+#: run preset -> (default method, finest marching-cubes resolution, label-map handling)
 RUN_PRESETS = {
-    "default": ("sparseocc", 384),
-    "paper": ("sparseocc", 256),
-    "smoke": ("sparseocc", 64),
+    "default": ("sparseocc", 384, LabelMapConfig(boundary_sigma_mm=LABEL_MAP_SIGMA_MM, band_voxels=2.0)),
+    "paper": ("sparseocc", 256, LabelMapConfig()),
+    "smoke": ("sparseocc", 64, LabelMapConfig(boundary_sigma_mm=LABEL_MAP_SIGMA_MM, band_voxels=2.0)),
 }
 
 
@@ -48,7 +52,7 @@ def build_fit_config(
     A shorter `iterations` than the preset's scales its warm-up by the same factor (at least 1)."""
     if preset not in RUN_PRESETS:
         raise RibPullInputError("bad_parameter", f"unknown preset {preset!r}; choose one of {sorted(RUN_PRESETS)}")
-    default_method, mesh_res = RUN_PRESETS[preset]
+    default_method, mesh_res, label_map = RUN_PRESETS[preset]
     method = method or default_method
     cls = get_method_class(method)
     method_config = cls.presets[preset]()
@@ -66,7 +70,8 @@ def build_fit_config(
             raise RibPullInputError("bad_parameter", "resolution must be between 16 and 1024")
         mesh_res = int(resolution)
     mesh = MeshConfig(resolution=mesh_res, coarse_resolution=min(64, mesh_res))
-    return FitConfig(preset=preset, method=method, method_config=method_config, mesh=mesh, seed=seed)
+    return FitConfig(preset=preset, method=method, method_config=method_config, mesh=mesh,
+                     label_map=dataclasses.replace(label_map), seed=seed)
 
 
 __all__ = ["METHOD_CLASSES", "RUN_PRESETS", "Method", "build_fit_config", "get_method_class"]

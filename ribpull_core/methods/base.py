@@ -105,6 +105,18 @@ class FittedField:
         return {"inside_score": score, "occupancy": occ, "U": score if self.kind == "occupancy" else 2 * occ - 1}
 
 
+@dataclass
+class KnownOccupancy:
+    """Points whose side of the surface the input states (a label map's voxel centres), unit frame.
+
+    points: (M, 3); inside: (M,) bool; distance: (M,) distance to the nearest sample of the other
+    class (unit-frame units; the surface lies somewhere in between)."""
+
+    points: np.ndarray
+    inside: np.ndarray
+    distance: np.ndarray
+
+
 class Method(ABC):
     """A surface-fitting method as a *model*: it supplies a network, parameter groups and named loss
     terms; the one training loop (`training.train`) does the rest. Subclasses set `name`, `kind`,
@@ -127,8 +139,13 @@ class Method(ABC):
         """{"name": network, "kwargs": {...}} for `fields.build_module` (saved with the weights)."""
 
     @abstractmethod
-    def setup(self, module: torch.nn.Module, points_unit: np.ndarray, device: torch.device) -> None:
-        """Prepare everything sampled once (queries, labels, generators) for (N, 3) unit-frame points."""
+    def setup(self, points_unit: np.ndarray, device: torch.device, known: KnownOccupancy | None = None) -> None:
+        """Prepare everything sampled once (queries, labels, generators) for (N, 3) unit-frame points.
+        Runs before `arch`, so the network may depend on the data (e.g. its sampling density).
+        `known`: occupancy the input states (label maps); methods that cannot use it ignore it."""
+
+    def initialize(self, module: torch.nn.Module) -> None:
+        """Set the freshly built module's starting state (warm start); default: its own init."""
 
     def get_param_groups(self, module: torch.nn.Module) -> list[dict]:
         """Optimiser groups [{"params": ..., "base_lr": ...}]; default: one group at schedule.lr."""
@@ -152,11 +169,12 @@ class Method(ABC):
         device: torch.device,
         progress: ProgressFn | None = None,
         should_cancel: CancelFn | None = None,
+        known: KnownOccupancy | None = None,
     ) -> FittedField:
         """Fit to (N, 3) float unit-frame points with the shared training loop; return the field."""
         from .training import train
 
-        return train(self, points_unit, device, progress, should_cancel)
+        return train(self, points_unit, device, progress, should_cancel, known)
 
 
 # --- shared training helpers -------------------------------------------------------------------

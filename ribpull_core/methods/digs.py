@@ -194,7 +194,7 @@ class DiGS(Method):
             },
         }
 
-    def setup(self, module: torch.nn.Module, points_unit: np.ndarray, device: torch.device) -> None:
+    def setup(self, points_unit: np.ndarray, device: torch.device, known=None) -> None:
         if len(points_unit) < 1:
             raise ValueError("DiGS needs at least 1 input point")
         self.rng = np.random.default_rng(self.config.seed)

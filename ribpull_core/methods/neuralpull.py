@@ -125,7 +125,7 @@ class NeuralPull(Method):
             },
         }
 
-    def setup(self, module: torch.nn.Module, points_unit: np.ndarray, device: torch.device) -> None:
+    def setup(self, points_unit: np.ndarray, device: torch.device, known=None) -> None:
         """Sample the queries once and keep each one's nearest input point as its target."""
         c = self.config
         if len(points_unit) < 2:

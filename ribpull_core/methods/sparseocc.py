@@ -34,14 +34,19 @@ from ..losses import (
     sampling_loss,
     sign_margin_loss,
 )
-from .base import FittedField, Method, knn_sigma, sample_pull_queries
+from .base import FittedField, KnownOccupancy, Method, knn_sigma, sample_pull_queries
 from .training import ScheduleConfig
 
 
 @dataclass
 class FieldConfig:
     """The network. network: "mlp" (the Neural-Pull 8x256 MLP, `mlp_*`) or "grid"
-    (GridOccupancyField, `grid_*`; grid_lr is the tables' Adam rate, the decoder uses schedule.lr)."""
+    (GridOccupancyField, `grid_*`; grid_lr is the tables' Adam rate, the decoder uses schedule.lr).
+
+    grid_finest_cell: when > 0, the finest grid level's cell edge is this multiple of the input's
+    sampling gap (median distance to the 8th neighbour), capped by grid_max_resolution: a grid
+    finer than the samples has nothing to constrain its fine levels but the noise. grid_domain: the
+    grid covers [-grid_domain, grid_domain]^3 (unit frame)."""
 
     network: str = "mlp"
     mlp_hidden: int = 256
@@ -53,6 +58,8 @@ class FieldConfig:
     grid_max_resolution: int = 512
     grid_hidden: int = 64
     grid_lr: float = 1e-2
+    grid_finest_cell: float = 0.0
+    grid_domain: float = 1.2
 
 
 @dataclass
@@ -98,7 +105,10 @@ class SignConfig:
     free_space_weight / free_space_points: hinge "outside" at points a flood fill reaches from the
     border without crossing the dilated input. near_surface_weight / near_surface_points: hinges
     inside / outside at input points -/+ near_surface_offset (x the flood-fill spacing) along
-    flood-fill-oriented normals.
+    flood-fill-oriented normals. known_weight / known_points: hinges at the occupancy the input
+    states (a label map's voxel centres near its boundary: inside ones U >= margin, outside ones
+    U <= -margin, margin = half of (distance to the other class - one voxel), so 0 at the first
+    ring); used only when the input has it.
     """
 
     free_space_weight: float = 0.0
@@ -106,6 +116,8 @@ class SignConfig:
     near_surface_weight: float = 0.0
     near_surface_points: int = 2048
     near_surface_offset: float = 0.5
+    known_weight: float = 0.0
+    known_points: int = 4096
 
 
 @dataclass
@@ -142,7 +154,7 @@ def default_config() -> SparseOccConfig:
                             gradient="finite_difference"),
         entropy=EntropyConfig(input_points=1000, uniform_points=1000, lambda_max=1.0, n_minimax=200),
         sign=SignConfig(free_space_weight=10.0, free_space_points=2048, near_surface_weight=10.0,
-                        near_surface_points=4096),
+                        near_surface_points=4096, known_weight=10.0),
         schedule=ScheduleConfig(iterations=1000, lr=2e-3, warmup=30, final_lr_ratio=0.05, early_stop_window=100,
                                 early_stop_rel_tol=0.005, early_stop_min_fraction=0.6),
     )
@@ -249,7 +261,24 @@ def space_labels(points_unit: np.ndarray, rng: np.random.Generator, n_free: int 
 # --- the method ------------------------------------------------------------------------------
 
 
-def _arch(f: FieldConfig) -> dict:
+def field_resolution(f: FieldConfig, sampling_gap: float) -> int:
+    """Finest grid resolution (cells across the domain) for inputs whose sampling gap (unit frame,
+    median distance to the 8th neighbour) is `sampling_gap`: 2*domain / (grid_finest_cell x gap),
+    between 2 x grid_base_resolution and grid_max_resolution (the fixed value when grid_finest_cell is 0)."""
+    if f.grid_finest_cell <= 0 or not sampling_gap > 0:
+        return int(f.grid_max_resolution)
+    res = round(2 * f.grid_domain / (f.grid_finest_cell * sampling_gap))
+    return int(min(max(res, 2 * f.grid_base_resolution), f.grid_max_resolution))
+
+
+def sampling_gap(points_unit: np.ndarray, k: int = 8) -> float:
+    """Median distance from an input point to its k-th neighbour (unit frame), over <= 50k points."""
+    sample = points_unit[:: max(1, len(points_unit) // 50_000)]
+    d, _ = cKDTree(points_unit).query(sample, k=min(k + 1, len(points_unit)), workers=-1)
+    return float(np.median(d[:, -1]))
+
+
+def _arch(f: FieldConfig, max_resolution: int | None = None) -> dict:
     if f.network == "mlp":
         return {"name": "NeuralPullMLP", "kwargs": {"out_dim": 2, "hidden": f.mlp_hidden, "layers": f.mlp_layers}}
     if f.network == "grid":
@@ -260,8 +289,9 @@ def _arch(f: FieldConfig) -> dict:
                 "features": f.grid_features,
                 "log2_table": f.grid_log2_table,
                 "base_resolution": f.grid_base_resolution,
-                "max_resolution": f.grid_max_resolution,
+                "max_resolution": int(max_resolution or f.grid_max_resolution),
                 "hidden": f.grid_hidden,
+                "domain": f.grid_domain,
             },
         }
     raise ValueError(f"unknown network {f.network!r}")
@@ -296,9 +326,9 @@ class SparseOcc(Method):
     presets: ClassVar[dict] = {"paper": paper_config, "default": default_config, "smoke": smoke_config}
 
     def arch(self) -> dict:
-        return _arch(self.config.field)
+        return _arch(self.config.field, self.resolution)
 
-    def setup(self, module: torch.nn.Module, points_unit: np.ndarray, device: torch.device) -> None:
+    def setup(self, points_unit: np.ndarray, device: torch.device, known: KnownOccupancy | None = None) -> None:
         """Queries and their targets, the sign labels and the entropy box, sampled once."""
         cfg: SparseOccConfig = self.config
         rng = np.random.default_rng(cfg.seed)
@@ -322,11 +352,23 @@ class SparseOcc(Method):
             if s.near_surface_weight > 0:
                 self.near = torch.from_numpy(np.concatenate([labels.near_in, labels.near_out])).to(device)
                 self.near_margin = 0.5 * labels.offset
+        self.known = None
+        if known is not None and s.known_weight > 0 and len(known.points):
+            self.known = torch.from_numpy(np.asarray(known.points, np.float32)).to(device)
+            self.known_inside = torch.from_numpy(np.asarray(known.inside, bool)).to(device)
+            first_ring = float(np.min(known.distance))
+            margin = 0.5 * np.maximum(np.asarray(known.distance) - first_ring, 0.0)
+            self.known_margin = torch.from_numpy(margin.astype(np.float32)).to(device)
         self.lo = torch.from_numpy(pts.min(0).astype(np.float32)).to(device) - 0.05
         self.hi = torch.from_numpy(pts.max(0).astype(np.float32)).to(device) + 0.05
         self.grid = cfg.field.network == "grid"
-        self.fd_step = module.finest_cell if self.grid and cfg.queries.gradient == "finite_difference" else cfg.queries.fd_step
+        self.resolution = field_resolution(cfg.field, sampling_gap(pts)) if self.grid else None
+        self.fd_step = cfg.queries.fd_step
         self.gen = torch.Generator(device=device).manual_seed(cfg.seed)
+
+    def initialize(self, module: torch.nn.Module) -> None:
+        if self.grid and self.config.queries.gradient == "finite_difference":
+            self.fd_step = module.finest_cell  # differences over one finest cell
 
     def get_param_groups(self, module: torch.nn.Module) -> list[dict]:
         lr = self.config.schedule.lr
@@ -365,6 +407,9 @@ class SparseOcc(Method):
         if self.near is not None:
             nidx = torch.randint(0, len(self.near), (sc.near_surface_points,), device=device, generator=gen)
             parts["near"] = self.near[nidx]
+        if self.known is not None:
+            kidx = torch.randint(0, len(self.known), (sc.known_points,), device=device, generator=gen)
+            parts["known"] = self.known[kidx]
         logits = {}
         if parts:
             out = module(torch.cat(list(parts.values())))
@@ -385,6 +430,9 @@ class SparseOcc(Method):
             u_near = margin_uncertainty(logits["near"])
             terms["near_surface"] = sc.near_surface_weight * sign_margin_loss(
                 u_near, inside, torch.full_like(u_near, self.near_margin))
+        if "known" in logits:
+            terms["known_occupancy"] = sc.known_weight * sign_margin_loss(
+                margin_uncertainty(logits["known"]), self.known_inside[kidx], self.known_margin[kidx])
         return terms
 
     def surface_level(self, fitted: FittedField, points_unit: np.ndarray) -> float:

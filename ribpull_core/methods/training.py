@@ -21,6 +21,7 @@ from ..fields import build_module
 from .base import (
     CancelFn,
     FittedField,
+    KnownOccupancy,
     ProgressFn,
     ProgressThrottle,
     check_cancel,
@@ -124,10 +125,11 @@ def _make_optimizer(groups: list[dict], device: torch.device) -> torch.optim.Ada
 
 
 def train(method: Method, points_unit: np.ndarray, device: torch.device, progress: ProgressFn | None = None,
-          should_cancel: CancelFn | None = None) -> FittedField:
+          should_cancel: CancelFn | None = None, known: KnownOccupancy | None = None) -> FittedField:
     """Fit `method` to (N, 3) unit-frame points on `device`; returns the trained FittedField.
 
-    Calls method.setup once, then each step method.get_loss_dict(step) and sums its terms. Checks
+    Calls method.setup once (data sampled once), builds method.arch(), lets method.initialize the
+    module (warm starts), then each step sums the terms of method.get_loss_dict(module, step). Checks
     `should_cancel` every 10 steps (raises JobCanceled) and reports progress about twice a second.
     """
     t0 = time.perf_counter()
@@ -136,9 +138,10 @@ def train(method: Method, points_unit: np.ndarray, device: torch.device, progres
     seed_everything(method.config.seed)
     points = np.asarray(points_unit, dtype=np.float64).reshape(-1, 3)
     check_cancel(should_cancel)
+    method.setup(points, device, known)
     arch = method.arch()
     module = build_module(arch).to(device).train()
-    method.setup(module, points, device)
+    method.initialize(module)
     groups = [dict(g) for g in method.get_param_groups(module)]
     for g in groups:
         g.setdefault("base_lr", schedule.lr)
