@@ -14,7 +14,9 @@ from __future__ import annotations
 import asyncio
 import json
 
-from fastapi import HTTPException as StarletteHTTPException  # FastAPI re-raises its own subclass from body parsing
+from fastapi import (
+    HTTPException as StarletteHTTPException,  # FastAPI re-raises its own subclass from body parsing
+)
 
 from .problems import PROBLEM_MEDIA_TYPE, problem_body, problem_response
 
@@ -127,7 +129,7 @@ class BodyLimit:
             return await self.app(scope, receive, send)
         is_query = scope["path"].rstrip("/").endswith("/query")
         limit = self.query_limit if is_query else self.other_limit
-        what = ("a query body (RIBPULL_MAX_QUERY_POINTS points at most ~%d bytes each)" % QUERY_BYTES_PER_POINT
+        what = (f"a query body (RIBPULL_MAX_QUERY_POINTS points at most ~{QUERY_BYTES_PER_POINT} bytes each)"
                 if is_query else "a request body on this route")
         msg = f"the request body is over {limit} bytes, the limit for {what}"
         for k, v in scope.get("headers", ()):

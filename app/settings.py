@@ -16,7 +16,6 @@ from pathlib import Path
 from pydantic import AliasChoices, Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-
 #: bytes per voxel of a res^3 marching-cubes grid the worker needs (measured: 9 GB at 1024^3)
 RESOLUTION_BYTES_PER_VOXEL = 8.5
 

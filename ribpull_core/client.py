@@ -18,7 +18,7 @@ import os
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, Self
 
 import httpx
 
@@ -56,7 +56,7 @@ class RibPullClient:
         self.url = url.rstrip("/")
         self._http = httpx.Client(base_url=self.url, headers=headers, timeout=timeout, transport=transport)
 
-    def __enter__(self) -> RibPullClient:
+    def __enter__(self) -> Self:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -131,8 +131,7 @@ class RibPullClient:
                         r.read()
                         _raise_for(r)
                     with open(tmp, "wb") as fh:
-                        for chunk in r.iter_bytes(1 << 20):
-                            fh.write(chunk)
+                        fh.writelines(r.iter_bytes(1 << 20))
             except httpx.HTTPError as exc:
                 tmp.unlink(missing_ok=True)
                 raise ServiceError(0, "unreachable", f"{self.url}: {type(exc).__name__}: {exc}") from None

@@ -18,7 +18,7 @@ PARAMS = json.dumps({"preset": "smoke", "iterations": 20, "preview": False})
 
 def ribpull(*args: str, timeout: float = 400) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "ribpull_core.cli", *args], cwd=ROOT, capture_output=True,
-                          text=True, timeout=timeout)
+                          text=True, timeout=timeout, check=False)
 
 
 def test_submit_wait_download(service, sample_ply, tmp_path):

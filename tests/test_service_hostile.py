@@ -185,7 +185,7 @@ def test_body_slower_than_its_content_length_gets_408(service):
     t = time.monotonic()
     raw = raw_http(service.api_port, _multipart_head(200_000), wait=BODY_TIMEOUT_S + 20)
     took = time.monotonic() - t
-    status, headers, body = parse_raw_response(raw)
+    status, headers, _body = parse_raw_response(raw)
     assert status == 408, raw[:300]
     assert headers["content-type"].startswith("application/problem+json")
     assert BODY_TIMEOUT_S - 0.5 <= took < BODY_TIMEOUT_S + 10

@@ -61,8 +61,8 @@ def test_dead_worker_and_api_are_restarted(tmp_path):
             old = _pid(out, name)
             assert old, out.read_text()
             os.killpg(old, signal.SIGKILL)  # the child and its pool processes, like the OOM killer
-            _wait(lambda: f"{name} (pid {old}) exited" in out.read_text(), 30, f"{name} exit logged", proc, out)
-            new = _wait(lambda: _pid(out, name, mark), 60, f"{name} restarted", proc, out)
+            _wait(lambda n=name, o=old: f"{n} (pid {o}) exited" in out.read_text(), 30, f"{name} exit logged", proc, out)
+            new = _wait(lambda n=name, m=mark: _pid(out, n, m), 60, f"{name} restarted", proc, out)
             assert new != old
             _wait(lambda: _ready(url), 180, f"readyz after the {name} restart", proc, out)
         assert proc.poll() is None, "serve.py stopped although only a child died"

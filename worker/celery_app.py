@@ -84,7 +84,6 @@ def _maintenance_loop() -> None:
 
     from app.db import make_sessionmaker
     from app.jobs import celery_client, enqueue
-
     from app.state import sweep, worker_id
 
     key = WORKER_KEY_PREFIX + worker_id()

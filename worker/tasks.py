@@ -17,14 +17,13 @@ import threading
 import time
 import traceback
 
+from app import state
 from app.db import Job, get_job, make_sessionmaker, utcnow
 from app.jobs import TASK_WEBHOOK, enqueue
 from app.problems import scrub_paths
 from app.schemas import finite_or_none, json_safe
 from app.settings import Settings
 from app.storage import ARTIFACT_MEDIA_TYPES, artifacts_dir, input_file, job_dir
-
-from app import state
 
 from . import celery_app as _capp
 from .celery_app import celery_app, configure_torch, settings
@@ -67,7 +66,8 @@ class Reporter:
         while not self._stop.wait(poll):
             try:
                 status, token, cancel = state.read_flags(self.sm, self.job_id)
-            except Exception:  # noqa: BLE001
+            except Exception as exc:  # noqa: BLE001
+                log.debug("job %s: cancel watch read failed: %s", self.job_id, exc)
                 continue
             if status != "running" or token != self.token or not cancel:
                 continue
