@@ -81,6 +81,37 @@ def voxel_centers_mm(shape: tuple[int, int, int], affine: np.ndarray, start: int
 
 # --- unsigned distance to a mesh ---------------------------------------------------------------------
 
+def sample_surface_fast(mesh_mm: trimesh.Trimesh, n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """n area-uniform random points on a mesh and their face indices ((n, 3), (n,)), like
+    trimesh.sample.sample_surface (same distribution, another random stream) but several times
+    faster for big meshes: sorted uniforms make the face look-up sequential, and only the sampled
+    faces' edge vectors are formed. Points come in face order."""
+    tri = np.asarray(mesh_mm.vertices, dtype=np.float64)[np.asarray(mesh_mm.faces, dtype=np.int64)]
+    return _sample_triangles(tri, _double_areas(tri), n, seed)
+
+
+def _double_areas(tri: np.ndarray) -> np.ndarray:
+    """(F, 3, 3) triangles -> (F,) twice their areas."""
+    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    c0 = e1[:, 1] * e2[:, 2] - e1[:, 2] * e2[:, 1]
+    c1 = e1[:, 2] * e2[:, 0] - e1[:, 0] * e2[:, 2]
+    c2 = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+    return np.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
+
+
+def _sample_triangles(tri: np.ndarray, area2: np.ndarray, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    cum = np.cumsum(area2)
+    rng = np.random.default_rng(seed)
+    u = np.sort(rng.random(n)) * cum[-1]
+    fi = np.minimum(np.searchsorted(cum, u), len(tri) - 1)
+    r = rng.random((n, 2))
+    flip = r.sum(1) > 1.0  # fold the unit square onto the triangle
+    r[flip] = 1.0 - r[flip]
+    t = tri[fi]
+    pts = t[:, 0] + r[:, :1] * (t[:, 1] - t[:, 0]) + r[:, 1:] * (t[:, 2] - t[:, 0])
+    return pts, fi
+
+
 class SurfaceDistance:
     """Fast unsigned distance (mm) from any points to a triangle mesh in mm.
 
@@ -119,11 +150,14 @@ class SurfaceDistance:
         cover_mm: tuple[np.ndarray, np.ndarray] | None = None,
         max_nodes: int = 8_000_000,
         margin: float = 0.1,
+        anchor_mm: np.ndarray | None = None,
     ):
         if len(mesh_mm.faces) == 0:
             raise ValueError("cannot measure distances to an empty mesh")
-        pts, fidx = trimesh.sample.sample_surface(mesh_mm, int(n_samples), seed=seed)
-        faces = np.asarray(mesh_mm.faces)
+        faces = np.asarray(mesh_mm.faces, dtype=np.int64)
+        self.triangles = np.asarray(mesh_mm.vertices, dtype=np.float64)[faces]
+        area2 = _double_areas(self.triangles)
+        pts, fidx = _sample_triangles(self.triangles, area2, int(n_samples), seed)
         vface = np.empty(len(mesh_mm.vertices), dtype=np.int64)
         for j in range(3):
             vface[faces[:, j]] = np.arange(len(faces))
@@ -133,12 +167,12 @@ class SurfaceDistance:
         self.face_of = np.concatenate([np.asarray(fidx, dtype=np.int64), vface[used]])
         o = morton_order(self.points)  # spatially sorted: much faster kd-tree
         self.points, self.face_of = self.points[o], self.face_of[o]
-        self.triangles = np.asarray(mesh_mm.triangles, dtype=np.float64)
-        self.tree = cKDTree(self.points)
+        # unbalanced, uncompacted, 32-point leaves: same answers, ~2x faster to build, ~1.5x to query here
+        self.tree = cKDTree(self.points, leafsize=32, balanced_tree=False, compact_nodes=False)
         sub = np.random.default_rng(seed).choice(len(self.points), min(8192, len(self.points)), replace=False)
         self.coarse_index = sub
         self.coarse_tree = cKDTree(self.points[sub])
-        self.spacing_mm = math.sqrt(float(mesh_mm.area) / max(1, len(self.points)))
+        self.spacing_mm = math.sqrt(0.5 * float(area2.sum()) / max(1, len(self.points)))
         self.bounds_mm = np.asarray(mesh_mm.bounds, dtype=np.float64)
         ext = float((self.bounds_mm[1] - self.bounds_mm[0]).max())
         lo = self.bounds_mm[0] - margin * ext
@@ -149,45 +183,76 @@ class SurfaceDistance:
         g = float(grid_mm) if grid_mm else max(ext / 128.0, 1e-6)
         while np.prod(np.ceil((hi - lo) / g) + 1) > max_nodes:
             g *= 1.1
+        if anchor_mm is not None:  # shift the grid so that anchor_mm is a node
+            anchor = np.asarray(anchor_mm, dtype=np.float64)
+            lo = anchor - np.ceil((anchor - lo) / g - 1e-9) * g
         self.grid_mm = g
         self.origin = lo
         self.nodes = np.ceil((hi - lo) / g).astype(np.int64) + 1
         self._build_grid()
 
-    def _nearest_surface_point(self, p: np.ndarray) -> np.ndarray:
-        """(M, 3) mm near the surface -> (M, 3) closest point on the triangle of the nearest sample."""
-        _, i = self.tree.query(p, k=1, workers=-1)
+    def _nearest_surface_point(self, p: np.ndarray, within_mm: float | None = None) -> np.ndarray:
+        """(M, 3) mm near the surface -> (M, 3) closest point on the triangle of the nearest sample.
+        within_mm: a distance the nearest sample is known to lie within (prunes the search)."""
+        if within_mm is None:
+            _, i = self.tree.query(p, k=1, workers=-1)
+        else:
+            d, i = self.tree.query(p, k=1, workers=-1, distance_upper_bound=within_mm)
+            miss = ~np.isfinite(d)
+            if miss.any():
+                i[miss] = self.tree.query(p[miss], k=1, workers=-1)[1]
         return trimesh.triangles.closest_point(self.triangles[self.face_of[i]], p)
 
     def _build_grid(self) -> None:
         shape = tuple(int(n) for n in self.nodes)
+        g = self.grid_mm
         near = np.zeros(shape, dtype=bool)
-        c = np.floor((self.points - self.origin) / self.grid_mm).astype(np.int64)
+        c = np.floor((self.points - self.origin) / g).astype(np.int64)
         c = np.clip(c, 0, self.nodes - 2)
         for off in np.ndindex(2, 2, 2):
             near[c[:, 0] + off[0], c[:, 1] + off[1], c[:, 2] + off[2]] = True
+        del c
         near = ndimage.binary_dilation(near, structure=ndimage.generate_binary_structure(3, 3))
         idx = np.argwhere(near)
-        cp = np.zeros(shape + (3,), dtype=np.float32)
+        flat = np.ravel_multi_index(idx.T, shape)  # sorted (argwhere is C order)
+        cp = np.zeros((3, near.size), dtype=np.float32)  # closest point per node, one row per axis
+        own = np.empty(len(idx))  # exact distance to the triangle of the node's nearest sample
+        reach = 2.0 * math.sqrt(3.0) * g * 1.001 + 1e-9  # a corner of a sample's cell, or next to one
         for s in range(0, len(idx), CHUNK):
-            ii = idx[s : s + CHUNK]
-            cp[ii[:, 0], ii[:, 1], ii[:, 2]] = self._nearest_surface_point(self.origin + ii * self.grid_mm)
+            p = self.origin + idx[s : s + CHUNK] * g
+            q = self._nearest_surface_point(p, within_mm=reach)
+            cp[:, flat[s : s + len(p)]] = q.T
+            own[s : s + len(p)] = np.linalg.norm(p - q, axis=1)
+        self._near_flat, self._near_exact = flat, own
+        del idx
         ind = ndimage.distance_transform_edt(~near, return_distances=False, return_indices=True)
-        cp = cp[ind[0], ind[1], ind[2]]
-        del ind
-        axes = [self.origin[k] + np.arange(shape[k]) * self.grid_mm for k in range(3)]
-        node = np.stack(np.meshgrid(*axes, indexing="ij"), -1).astype(np.float32)
-        best = ((node - cp) ** 2).sum(-1)
+        src = np.ravel_multi_index(tuple(ind), shape)
+        del ind, near
+        cp = cp[:, src].reshape((3,) + shape)
+        del src
+        ax = [(self.origin[k] + np.arange(shape[k]) * g).astype(np.float32) for k in range(3)]
+        node = (ax[0][:, None, None], ax[1][None, :, None], ax[2][None, None, :])
+
+        def sq(dst, cand):
+            out = (node[0][dst[0]] - cand[0]) ** 2
+            out += (node[1][:, dst[1]] - cand[1]) ** 2
+            out += (node[2][:, :, dst[2]] - cand[2]) ** 2
+            return out
+
+        full = (slice(None),) * 3
+        best = sq(full, cp)
         for _ in range(self.relax_sweeps):  # a neighbour's closest point may be closer: take it
             for o in self.relax_offsets:
                 dst = tuple(slice(max(0, -k), n - max(0, k)) for k, n in zip(o, shape))
                 src = tuple(slice(max(0, k), n - max(0, -k)) for k, n in zip(o, shape))
-                cand = cp[src]
-                dc = ((node[dst] - cand) ** 2).sum(-1)
+                cand = cp[(slice(None),) + src]
+                dc = sq(dst, cand)
                 better = dc < best[dst]
                 best[dst][better] = dc[better]
-                cp[dst][better] = cand[better]
-        self.cp_grid = cp
+                for k in range(3):
+                    cp[k][dst][better] = cand[k][better]
+        self._cp = cp  # (3, n0, n1, n2)
+        self.cp_grid = np.ascontiguousarray(np.moveaxis(cp, 0, -1))  # (n0, n1, n2, 3) for point queries
 
     def __call__(self, points_mm: np.ndarray) -> np.ndarray:
         """(N, 3) mm -> (N,) float64 unsigned distance in mm."""
@@ -218,6 +283,42 @@ class SurfaceDistance:
             d[far] = np.minimum(d[far], np.linalg.norm(p[far] - cp, axis=1))
         return d
 
+    def node_distances(self) -> np.ndarray:
+        """(nodes) float64: what __call__ returns at every grid node, computed on the grid (several
+        times faster than querying the node positions as points): the smallest distance to the stored
+        closest points of the node's cell (the cell the node is the lowest corner of, the last one
+        at the upper faces) and, within 3 cells of the surface, the exact distance to the triangle of
+        its nearest sample."""
+        shape = tuple(int(n) for n in self.nodes)
+        g = self.grid_mm
+        ext = self._cp  # pad each axis with the node index n-2, so node n-1 uses cell n-2
+        for ax in range(3):
+            ext = np.concatenate([ext, np.take(ext, [max(shape[ax] - 2, 0)], axis=ax + 1)], axis=ax + 1)
+        ax0, ax1, ax2 = (self.origin[k] + np.arange(shape[k]) * g for k in range(3))
+        d = np.empty(shape)
+        rows = max(1, CHUNK // max(1, shape[1] * shape[2]))
+        for a in range(0, shape[0], rows):
+            b = min(shape[0], a + rows)
+            best = np.full((b - a,) + shape[1:], np.inf)
+            for dx, dy, dz in np.ndindex(2, 2, 2):
+                c = ext[:, a + dx : b + dx, dy : dy + shape[1], dz : dz + shape[2]]
+                q = (ax0[a:b, None, None] - c[0]) ** 2
+                q += (ax1[None, :, None] - c[1]) ** 2
+                q += (ax2[None, None, :] - c[2]) ** 2
+                np.minimum(best, q, out=best)
+            d[a:b] = np.sqrt(best)
+        flat = d.reshape(-1)
+        near = np.flatnonzero(flat < 3.0 * g)
+        known = np.isin(near, self._near_flat, assume_unique=True)
+        pos = np.searchsorted(self._near_flat, near[known])
+        flat[near[known]] = np.minimum(flat[near[known]], self._near_exact[pos])
+        rest = near[~known]
+        for s in range(0, len(rest), CHUNK):
+            ii = rest[s : s + CHUNK]
+            p = self.origin + np.stack(np.unravel_index(ii, shape), -1) * g
+            flat[ii] = np.minimum(flat[ii], np.linalg.norm(p - self._nearest_surface_point(p), axis=1))
+        return d
+
     def outside_bounds(self, points_mm: np.ndarray) -> np.ndarray:
         """(N,) bool: outside the mesh's bounding box (so outside the closed mesh)."""
         p = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
@@ -242,7 +343,9 @@ def signed_distance_volume(
 
     |value| = `SurfaceDistance` to mesh_mm (see its accuracy; its closest-point grid has spacing
     grid_mm, default the smallest voxel spacing but at least the mesh's longest side / 256, and
-    covers the volume). Sign: inside_score > field.level.
+    covers the volume, and is placed so that the voxel centres are nodes of it: an axis-aligned volume
+    whose spacing is a multiple of grid_mm is then measured on the grid itself, `node_distances`,
+    with the same values as point queries at the voxel centres). Sign: inside_score > field.level.
     The network is only queried where it matters: voxels within 1.5 voxel diagonals of the surface
     get the field's own sign; the other voxels form connected regions (6-connectivity) that cannot
     cross the surface, and each takes the majority sign of the field at up to `votes` random voxels
@@ -259,17 +362,26 @@ def signed_distance_volume(
         grid_mm = max(float(spacing.min()), float((mesh_mm.bounds[1] - mesh_mm.bounds[0]).max()) / 256.0)
     dist = SurfaceDistance(
         mesh_mm, n_samples=n_samples, seed=seed, grid_mm=grid_mm, margin=0.0,
-        cover_mm=(corners.min(0), corners.max(0)),
+        cover_mm=(corners.min(0), corners.max(0)), anchor_mm=affine[:3, 3],
     )
+    if should_cancel is not None and should_cancel():
+        raise JobCanceled("canceled")
     band = 1.5 * float(np.linalg.norm(spacing))
-    absd = np.empty(n, dtype=np.float32)
-    outbox = np.empty(n, dtype=bool)
-    for s in range(0, n, CHUNK):
-        if should_cancel is not None and should_cancel():
-            raise JobCanceled("canceled")
-        p = voxel_centers_mm(shape, affine, s, min(n, s + CHUNK))
-        absd[s : s + len(p)] = dist(p)
-        outbox[s : s + len(p)] = dist.outside_bounds(p)
+    on_nodes = _voxels_on_nodes(shape, affine, dist)
+    if on_nodes is not None:  # an axis-aligned volume on the closest-point grid: one grid pass
+        absd = dist.node_distances()[np.ix_(*on_nodes)].astype(np.float32).ravel()
+        lo, hi = dist.bounds_mm
+        ob = [(x < lo[k]) | (x > hi[k]) for k, x in enumerate(_axis_coords(shape, affine))]
+        outbox = (ob[0][:, None, None] | ob[1][None, :, None] | ob[2][None, None, :]).ravel()
+    else:
+        absd = np.empty(n, dtype=np.float32)
+        outbox = np.empty(n, dtype=bool)
+        for s in range(0, n, CHUNK):
+            if should_cancel is not None and should_cancel():
+                raise JobCanceled("canceled")
+            p = voxel_centers_mm(shape, affine, s, min(n, s + CHUNK))
+            absd[s : s + len(p)] = dist(p)
+            outbox[s : s + len(p)] = dist.outside_bounds(p)
     inside = np.zeros(n, dtype=bool)
     level = float(field.level)
 
@@ -308,6 +420,27 @@ def signed_distance_volume(
             inside[sel] = comp_inside[flat[sel]]
     sdf = np.where(inside, -absd, absd).astype(np.float32)
     return sdf.reshape(shape)
+
+
+def _axis_coords(shape, affine: np.ndarray) -> list[np.ndarray]:
+    """Per-axis voxel centre coordinates (mm) of an axis-aligned (diagonal) affine."""
+    return [affine[k, 3] + affine[k, k] * np.arange(shape[k]) for k in range(3)]
+
+
+def _voxels_on_nodes(shape, affine: np.ndarray, dist: SurfaceDistance):
+    """For an axis-aligned affine whose voxel centres are all nodes of dist's grid: the node index
+    per voxel along each axis ([(n0,), (n1,), (n2,)]); else None."""
+    a = np.asarray(affine, dtype=np.float64)[:3, :3]
+    if np.any(a - np.diag(np.diag(a))):
+        return None
+    out = []
+    for k, x in enumerate(_axis_coords(shape, affine)):
+        f = (x - dist.origin[k]) / dist.grid_mm
+        i = np.rint(f)
+        if np.abs(f - i).max() > 1e-6 or i.min() < 0 or i.max() > dist.nodes[k] - 1:
+            return None
+        out.append(i.astype(np.int64))
+    return out
 
 
 def write_nifti(path: str | Path, volume: np.ndarray, affine: np.ndarray) -> Path:
