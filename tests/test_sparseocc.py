@@ -163,3 +163,31 @@ def test_default_loss_dict_names_each_term_and_metrics_report_them():
     # eq. 1 sampling and RibPull's two hinges for the whole run; eq. 2 entropy while its weight is on
     assert set(field.loss_terms) == {"sampling", "entropy", "free_space", "near_surface"}
     assert field.loss_terms["sampling"] > 0 and field.loss_terms["free_space"] >= 0
+
+
+def test_classification_level_splits_known_labels():
+    from ribpull_core.methods.sparseocc import classification_level
+
+    u = np.array([-0.9, -0.5, -0.1, 0.05, 0.2, 0.3, 0.8])
+    inside = np.array([False, False, False, False, True, True, True])
+    t = classification_level(u, inside)
+    assert 0.05 < t < 0.2
+    assert ((u > t) == inside).all()
+    # one mislabelled sample does not move the cut to its side
+    inside2 = inside.copy()
+    inside2[0] = True
+    assert 0.05 < classification_level(u, inside2) < 0.2
+
+
+def test_field_resolution_follows_the_sampling_gap():
+    from ribpull_core.methods.sparseocc import FieldConfig, field_resolution, sampling_gap
+
+    f = FieldConfig(network="grid", grid_finest_cell=1.0, grid_max_resolution=256, grid_base_resolution=16)
+    dense, sparse = sphere_points(20_000, 0.5), sphere_points(1_000, 0.5)
+    r_dense, r_sparse = field_resolution(f, sampling_gap(dense)), field_resolution(f, sampling_gap(sparse))
+    assert 32 <= r_sparse < r_dense <= 256  # sparser samples -> coarser finest level
+    # the finest cell is about one sampling gap
+    assert abs(2 * f.grid_domain / r_dense / sampling_gap(dense) - 1.0) < 0.1
+    assert field_resolution(FieldConfig(grid_max_resolution=300), sampling_gap(dense)) == 300  # fixed when 0
+    lm = dataclasses.replace(f, grid_finest_cell_label_map=2.0)
+    assert field_resolution(lm, sampling_gap(dense), label_map=True) < field_resolution(lm, sampling_gap(dense))

@@ -16,7 +16,7 @@ from .base import Method
 from .training import with_schedule
 
 #: label maps: std (mm) of the smoothing that places the boundary points between voxel centres
-LABEL_MAP_SIGMA_MM = 1.0
+LABEL_MAP_SIGMA_MM = 0.6
 
 #: method name -> "module:Class"
 METHOD_CLASSES = {
