@@ -57,6 +57,39 @@ def inside_scores(
     return out
 
 
+# --- surface sampling ------------------------------------------------------------------------------
+
+def sample_surface_fast(mesh_mm: trimesh.Trimesh, n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """n area-uniform random points on a mesh and their face indices ((n, 3), (n,)), like
+    trimesh.sample.sample_surface (same distribution, another random stream) but several times
+    faster for big meshes: sorted uniforms make the face look-up sequential, and only the sampled
+    faces' edge vectors are formed. Points come in face order."""
+    tri = np.asarray(mesh_mm.vertices, dtype=np.float64)[np.asarray(mesh_mm.faces, dtype=np.int64)]
+    return _sample_triangles(tri, _double_areas(tri), n, seed)
+
+
+def _double_areas(tri: np.ndarray) -> np.ndarray:
+    """(F, 3, 3) triangles -> (F,) twice their areas."""
+    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    c0 = e1[:, 1] * e2[:, 2] - e1[:, 2] * e2[:, 1]
+    c1 = e1[:, 2] * e2[:, 0] - e1[:, 0] * e2[:, 2]
+    c2 = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+    return np.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
+
+
+def _sample_triangles(tri: np.ndarray, area2: np.ndarray, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    cum = np.cumsum(area2)
+    rng = np.random.default_rng(seed)
+    u = np.sort(rng.random(n)) * cum[-1]
+    fi = np.minimum(np.searchsorted(cum, u), len(tri) - 1)
+    r = rng.random((n, 2))
+    flip = r.sum(1) > 1.0  # fold the unit square onto the triangle
+    r[flip] = 1.0 - r[flip]
+    t = tri[fi]
+    pts = t[:, 0] + r[:, :1] * (t[:, 1] - t[:, 0]) + r[:, 1:] * (t[:, 2] - t[:, 0])
+    return pts, fi
+
+
 # --- grid helpers ----------------------------------------------------------------------------------
 
 def _upsample2(a: np.ndarray) -> np.ndarray:
@@ -343,16 +376,18 @@ def face_adjacency_pairs(faces: np.ndarray) -> np.ndarray:
     return np.stack([order[two] // 3, order[two + 1] // 3], axis=1)
 
 
-def face_component_labels(faces: np.ndarray) -> tuple[np.ndarray, int]:
-    """((F,) label per face, number of components); faces are connected when they share an edge.
-    Labels are numbered in order of each component's first face (like trimesh's)."""
+def face_component_labels(faces: np.ndarray, pairs: np.ndarray | None = None) -> tuple[np.ndarray, int]:
+    """((F,) label per face, number of components); faces are connected when they share an edge
+    (pairs: `face_adjacency_pairs(faces)` if already computed). Labels are numbered in order of each
+    component's first face (like trimesh's)."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
     n = len(faces)
     if n == 0:
         return np.zeros(0, dtype=np.int64), 0
-    pairs = face_adjacency_pairs(faces)
+    if pairs is None:
+        pairs = face_adjacency_pairs(faces)
     g = coo_matrix((np.ones(len(pairs), dtype=np.int8), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
     n_comp, labels = connected_components(g, directed=False)
     return labels.astype(np.int64), int(n_comp)

@@ -360,6 +360,22 @@ def skeletonize(
     )
 
 
+def _sample_surface(tri: np.ndarray, cross: np.ndarray, cum_area: np.ndarray, n: int, rng) -> tuple[np.ndarray, np.ndarray]:
+    """n area-uniform points on triangles (F, 3, 3) with their unit face normals ((n, 3), (n, 3));
+    cross: (F, 3) edge cross products (normal directions), cum_area: cumulative sum of their norms.
+    The distribution of trimesh.sample.sample_surface, several times faster on big meshes (sorted
+    uniforms: sequential face look-up; only the sampled faces are touched). Points come in face order."""
+    fi = np.minimum(np.searchsorted(cum_area, np.sort(rng.random(n)) * cum_area[-1]), len(tri) - 1)
+    r = rng.random((n, 2))
+    flip = r.sum(1) > 1.0  # fold the unit square onto the triangle
+    r[flip] = 1.0 - r[flip]
+    t = tri[fi]
+    pts = t[:, 0] + r[:, :1] * (t[:, 1] - t[:, 0]) + r[:, 1:] * (t[:, 2] - t[:, 0])
+    nrm = cross[fi]
+    nrm = nrm / np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
+    return pts, nrm
+
+
 def skeleton_from_mesh(
     mesh_mm: trimesh.Trimesh,
     n_points: int = 20_000,
@@ -375,11 +391,13 @@ def skeleton_from_mesh(
     if not isinstance(mesh_mm, trimesh.Trimesh) or len(mesh_mm.faces) == 0:
         raise RibPullInputError("bad_parameter", "skeleton_from_mesh needs a non-empty triangle mesh")
     rng = np.random.default_rng(seed)
-    pts, face = trimesh.sample.sample_surface(mesh_mm, int(n_points), seed=rng)
-    normals = mesh_mm.face_normals[face]
+    tri = np.asarray(mesh_mm.vertices, dtype=np.float64)[np.asarray(mesh_mm.faces, dtype=np.int64)]
+    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    cum = np.cumsum(np.linalg.norm(cross, axis=1))  # twice the face areas, accumulated
+    pts, normals = _sample_surface(tri, cross, cum, int(n_points), rng)
     if kw.get("distance_to_surface_mm") is None:
-        dense, dface = trimesh.sample.sample_surface(mesh_mm, max(10 * int(n_points), 200_000), seed=rng)
-        kw["distance_to_surface_mm"] = surface_distance_fn(dense, mesh_mm.face_normals[dface], 8)
+        dense, dnormals = _sample_surface(tri, cross, cum, max(10 * int(n_points), 200_000), rng)
+        kw["distance_to_surface_mm"] = surface_distance_fn(dense, dnormals, 8)
     kw.setdefault("normals", normals)
     if point_labels_fn is not None:
         kw["point_labels"] = np.asarray(point_labels_fn(pts))
