@@ -30,7 +30,7 @@ QUERY_BLOCK = 131_072
 
 # --- field evaluation ------------------------------------------------------------------------------
 
-@torch.no_grad()
+@torch.inference_mode()  # like no_grad, minus autograd's version counting
 def inside_scores(
     field: FittedField,
     x_unit: np.ndarray,

@@ -95,3 +95,21 @@ def test_mesh_summary():
     opened = trimesh.creation.box()
     opened.update_faces(np.arange(len(opened.faces)) > 0)
     assert mesh_summary(opened)["watertight"] is False and mesh_summary(opened)["volume_mm3"] is None
+
+
+def test_mesh_summary_matches_trimesh():
+    sphere = trimesh.creation.icosphere(4, 10.0)
+    boxes = trimesh.util.concatenate([trimesh.creation.box(), trimesh.creation.box().apply_translation([3, 0, 0])])
+    opened = trimesh.Trimesh(sphere.vertices, sphere.faces[5:], process=False)
+    # two cubes sharing one edge: that edge has four faces, so it joins nothing and is not watertight
+    a = trimesh.creation.box()
+    b = trimesh.creation.box().apply_translation([1, 1, 0])
+    pinched = trimesh.Trimesh(np.vstack([a.vertices, b.vertices]), np.vstack([a.faces, b.faces + 8]), process=True)
+    for m in (sphere, boxes, opened, pinched):
+        s = mesh_summary(m)
+        assert s["n_vertices"] == len(m.vertices) and s["n_faces"] == len(m.faces)
+        assert s["watertight"] == m.is_watertight
+        assert s["components"] == len(trimesh.graph.connected_components(m.face_adjacency, nodes=np.arange(len(m.faces))))
+        assert s["area_mm2"] == pytest.approx(m.area, rel=1e-12)
+        assert (s["volume_mm3"] is None) if not m.is_watertight else s["volume_mm3"] == pytest.approx(m.volume, rel=1e-9)
+    assert mesh_summary(pinched)["components"] == 2 and not mesh_summary(pinched)["watertight"]

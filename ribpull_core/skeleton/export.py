@@ -89,17 +89,21 @@ def skeleton_obj_text(skel: Skeleton) -> str:
     return "\n".join(out) + "\n"
 
 
-def skeleton_scene(skel: Skeleton, mesh_mm: trimesh.Trimesh | None = None, tube_radius_mm: float = 0.6) -> trimesh.Scene:
+def skeleton_scene(skel: Skeleton, mesh_mm: trimesh.Trimesh | None = None, tube_radius_mm: float = 0.6,
+                   tubes: trimesh.Trimesh | None = None) -> trimesh.Scene:
     """Scene with the skeleton as lines ("skeleton_lines") and tubes ("skeleton_tubes"), plus the
-    surface ("surface") when given."""
+    surface ("surface") when given. tubes: `skeleton_tubes(skel, tube_radius_mm)` if already built."""
     scene = trimesh.Scene()
     if mesh_mm is not None and len(mesh_mm.faces):
-        surface = mesh_mm.copy()
-        surface.visual.face_colors = np.array(SURFACE_RGBA, dtype=np.uint8)
+        # a light copy (the arrays, not trimesh's caches); one colour for every vertex is what a
+        # uniform face colour becomes in glTF anyway
+        surface = trimesh.Trimesh(vertices=np.array(mesh_mm.vertices), faces=np.array(mesh_mm.faces), process=False)
+        surface.visual.vertex_colors = np.array(SURFACE_RGBA, dtype=np.uint8)
         scene.add_geometry(surface, geom_name="surface")
     if len(skel.nodes_mm):
         scene.add_geometry(skeleton_path(skel), geom_name="skeleton_lines")
-        tubes = skeleton_tubes(skel, tube_radius_mm)
+        if tubes is None:
+            tubes = skeleton_tubes(skel, tube_radius_mm)
         if len(tubes.faces):
             scene.add_geometry(tubes, geom_name="skeleton_tubes")
     scene.metadata["units"] = "mm"
@@ -120,8 +124,9 @@ def export_skeleton(
     }
     paths["skeleton.json"].write_text(json.dumps(skel.to_json()))
     paths["skeleton.obj"].write_text(skeleton_obj_text(skel))
-    paths["skeleton.glb"].write_bytes(skeleton_scene(skel, None, tube_radius_mm).export(file_type="glb"))
+    tubes = skeleton_tubes(skel, tube_radius_mm) if len(skel.nodes_mm) else None
+    paths["skeleton.glb"].write_bytes(skeleton_scene(skel, None, tube_radius_mm, tubes).export(file_type="glb"))
     if mesh_mm is not None:
         paths["scene.glb"] = outdir / "scene.glb"
-        paths["scene.glb"].write_bytes(skeleton_scene(skel, mesh_mm, tube_radius_mm).export(file_type="glb"))
+        paths["scene.glb"].write_bytes(skeleton_scene(skel, mesh_mm, tube_radius_mm, tubes).export(file_type="glb"))
     return paths
