@@ -191,3 +191,14 @@ def test_field_resolution_follows_the_sampling_gap():
     assert field_resolution(FieldConfig(grid_max_resolution=300), sampling_gap(dense)) == 300  # fixed when 0
     lm = dataclasses.replace(f, grid_finest_cell_label_map=2.0)
     assert field_resolution(lm, sampling_gap(dense), label_map=True) < field_resolution(lm, sampling_gap(dense))
+
+
+def test_inference_encoding_matches_the_training_kernel():
+    m = GridOccupancyField(n_levels=6, log2_table=12, max_resolution=128)
+    with torch.no_grad():
+        m.embedding.weight.uniform_(-1, 1)
+    x = torch.rand(5000, 3) * 2.4 - 1.2
+    trained = m.encode(x)  # grad enabled: the kernel that keeps corners for backward
+    with torch.no_grad():
+        inferred = m.encode(x)
+    assert torch.allclose(trained, inferred, atol=1e-6)

@@ -97,8 +97,10 @@ class GridOccupancyField(nn.Module):
         same computation several times faster; otherwise (CUDA, autograd w.r.t. x) it is pure torch.
         """
         if x.device.type == "cpu" and not x.requires_grad and x.dtype == torch.float32:
-            from .grid_kernels import HashGridEncode
+            from .grid_kernels import HashGridEncode, encode_inference
 
+            if not torch.is_grad_enabled():
+                return encode_inference(x, self.embedding.weight, *self._kernel_args())
             return HashGridEncode.apply(x, self.embedding.weight, *self._kernel_args())
         return self._encode_torch(x)
 

@@ -20,7 +20,7 @@ _P2 = np.int64(805459861)
 
 
 @njit(parallel=True, fastmath=True, cache=True)
-def _encode_forward(x, table, res, sizes, offsets, dense, domain, out, idx_out, w_out):  # pragma: no cover - compiled
+def _encode_forward(x, table, res, sizes, offsets, dense, domain, out, idx_out, w_out, keep):  # pragma: no cover - compiled
     n_points = x.shape[0]
     n_levels = res.shape[0]
     n_feat = table.shape[1]
@@ -45,8 +45,9 @@ def _encode_forward(x, table, res, sizes, offsets, dense, domain, out, idx_out, 
                     h = (cx ^ (cy * _P1) ^ (cz * _P2)) & (sizes[lev] - 1)
                 row = offsets[lev] + h
                 w = (fx if bx else 1.0 - fx) * (fy if by else 1.0 - fy) * (fz if bz else 1.0 - fz)
-                idx_out[b, lev, c] = row
-                w_out[b, lev, c] = w
+                if keep:  # corners and weights for the backward pass (training only)
+                    idx_out[b, lev, c] = row
+                    w_out[b, lev, c] = w
                 for f in range(n_feat):
                     out[b, lev * n_feat + f] += w * table[row, f]
 
@@ -75,7 +76,7 @@ class HashGridEncode(torch.autograd.Function):
         out = np.zeros((n, n_levels * n_feat), np.float32)
         idx = np.empty((n, n_levels, 8), np.int64)
         w = np.empty((n, n_levels, 8), np.float32)
-        _encode_forward(xn, tn, res, sizes, offsets, dense, np.float32(domain), out, idx, w)
+        _encode_forward(xn, tn, res, sizes, offsets, dense, np.float32(domain), out, idx, w, True)
         ctx.save_for_backward(torch.from_numpy(idx), torch.from_numpy(w))
         ctx.table_shape = tuple(table.shape)
         return torch.from_numpy(out)
@@ -87,6 +88,17 @@ class HashGridEncode(torch.autograd.Function):
         _encode_backward(grad_out.contiguous().numpy().astype(np.float32, copy=False), idx.numpy(), w.numpy(),
                          ctx.table_shape[1], grad_table)
         return None, torch.from_numpy(grad_table), None, None, None, None, None
+
+
+def encode_inference(x: torch.Tensor, table: torch.Tensor, res, sizes, offsets, dense, domain) -> torch.Tensor:
+    """The forward of `HashGridEncode` without keeping corners and weights (no gradient): meshing,
+    SDF and queries evaluate millions of points, and the (B, L, 8) arrays cost more than the gather."""
+    xn = x.detach().contiguous().numpy().astype(np.float32, copy=False)
+    tn = table.detach().contiguous().numpy()
+    out = np.zeros((xn.shape[0], res.shape[0] * tn.shape[1]), np.float32)
+    unused_idx, unused_w = np.empty((1, 1, 1), np.int64), np.empty((1, 1, 1), np.float32)
+    _encode_forward(xn, tn, res, sizes, offsets, dense, np.float32(domain), out, unused_idx, unused_w, False)
+    return torch.from_numpy(out)
 
 
 def numba_available() -> bool:
