@@ -202,3 +202,15 @@ def test_inference_encoding_matches_the_training_kernel():
     with torch.no_grad():
         inferred = m.encode(x)
     assert torch.allclose(trained, inferred, atol=1e-6)
+
+
+def test_isolated_points_are_dropped_and_the_surface_is_kept():
+    from ribpull_core.methods.sparseocc import drop_isolated_points
+
+    surface = sphere_points(20_000, 0.5)
+    outliers = np.random.default_rng(3).uniform(-1, 1, (400, 3))
+    outliers = outliers[np.abs(np.linalg.norm(outliers, axis=1) - 0.5) > 0.1]  # clearly off the sphere
+    kept = drop_isolated_points(np.concatenate([surface, outliers]), 2.5)
+    on_sphere = np.abs(np.linalg.norm(kept, axis=1) - 0.5) < 1e-6
+    assert on_sphere.sum() == len(surface)  # every surface sample kept
+    assert (~on_sphere).sum() < 0.1 * len(outliers)

@@ -76,6 +76,9 @@ class QueryConfig:
     gradient: grad U by "autograd" (double backward) or "finite_difference" (forward differences,
     3 extra evaluations per query, step = the finest grid cell for grids, else fd_step).
     sampling_weight: weight of eq. 1's loss. max_input_points: inputs are subsampled to this.
+    outlier_gap_factor: input points whose distance to their 8th neighbour exceeds this multiple of
+    the median such distance are dropped before fitting (isolated samples: scanner or segmentation
+    outliers); 0 keeps every point.
     """
 
     n_queries: int = 1_000_000
@@ -87,6 +90,7 @@ class QueryConfig:
     fd_step: float = 0.005
     sampling_weight: float = 10.0
     max_input_points: int = 200_000
+    outlier_gap_factor: float = 0.0
 
 
 @dataclass
@@ -161,7 +165,7 @@ def default_config() -> SparseOccConfig:
         field=FieldConfig(network="grid", grid_levels=8, grid_log2_table=18, grid_max_resolution=256, grid_lr=2e-2,
                           grid_finest_cell=1.0, grid_finest_cell_label_map=1.5),
         queries=QueryConfig(n_queries=400_000, scales=(0.5, 1.0, 2.0), batch_size=2048, jitter=(0.0, 0.0),
-                            gradient="finite_difference"),
+                            gradient="finite_difference", outlier_gap_factor=2.5),
         entropy=EntropyConfig(input_points=1000, uniform_points=1000, lambda_max=1.0, n_minimax=200),
         sign=SignConfig(free_space_weight=10.0, free_space_points=2048, near_surface_weight=10.0,
                         near_surface_points=4096, known_weight=10.0),
@@ -304,6 +308,17 @@ def sampling_gap(points_unit: np.ndarray, k: int = 8) -> float:
     return float(np.median(d[:, -1]))
 
 
+def drop_isolated_points(points: np.ndarray, factor: float, k: int = 8) -> np.ndarray:
+    """(N, 3) -> the points whose distance to their k-th neighbour is at most `factor` x the median
+    of that distance (any units). A surface sample has neighbours about one sampling gap away; a
+    uniform outlier in the bounding box has its nearest ones tens of gaps away."""
+    if len(points) <= k + 1:
+        return points
+    d, _ = cKDTree(points).query(points, k=k + 1, workers=-1)
+    gap = d[:, -1]
+    return points[gap <= factor * float(np.median(gap))]
+
+
 def _arch(f: FieldConfig, max_resolution: int | None = None) -> dict:
     if f.network == "mlp":
         return {"name": "NeuralPullMLP", "kwargs": {"out_dim": 2, "hidden": f.mlp_hidden, "layers": f.mlp_layers}}
@@ -361,6 +376,8 @@ class SparseOcc(Method):
         pts = np.asarray(points_unit, dtype=np.float64)
         if len(pts) > cfg.queries.max_input_points:  # the loss only needs a dense enough sample
             pts = pts[rng.choice(len(pts), cfg.queries.max_input_points, replace=False)]
+        if cfg.queries.outlier_gap_factor > 0:
+            pts = drop_isolated_points(pts, cfg.queries.outlier_gap_factor)
         self.points = pts
         queries, nearest = self._queries(pts, rng)
         self.q_all = torch.from_numpy(queries).to(device)
