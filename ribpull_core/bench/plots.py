@@ -29,6 +29,24 @@ def _colours(keys: list) -> dict:
     return {m: cmap(i % 10) for i, m in enumerate(keys)}
 
 
+def _save_log_plot(fig, ax, path: Path, drawn: bool, xlabel: str, ylabel: str, title: str,
+                   log_y: bool = False, legend_size: int = 8) -> Path:
+    """Finish a log-x plot (log-y too when log_y; a "no rows" note when nothing was drawn) and save it."""
+    if drawn:
+        ax.set_xscale("log")
+        if log_y:
+            ax.set_yscale("log")
+        ax.legend(fontsize=legend_size, loc="best")
+    else:
+        _no_rows(ax)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.grid(alpha=0.3, which="both")
+    fig.savefig(path, facecolor="white")
+    return Path(path)
+
+
 def _no_rows(ax) -> None:
     ax.text(0.5, 0.5, "no successful rows", transform=ax.transAxes, ha="center")
 
@@ -76,18 +94,9 @@ def plot_accuracy_vs_time(path: Path, rows: list[dict]) -> Path:
         ax.scatter([], [], color=colours[m], label=m)
     for g in dict.fromkeys(r.get("group") for r in ok):
         ax.scatter([], [], color="grey", marker=markers.get(g, "v"), label=g)
-    if ok:
-        ax.set_xscale("log")
-        ax.set_yscale("log")
-        ax.legend(fontsize=7, loc="best")
-    else:
-        _no_rows(ax)
-    ax.set_xlabel("wall time of the method (s)")
-    ax.set_ylabel("CD-L1 (mm) vs the true surface (phantoms) or the input (others)")
-    ax.set_title("Accuracy vs time (colour: method, marker: case group)")
-    ax.grid(alpha=0.3, which="both")
-    fig.savefig(path, facecolor="white")
-    return Path(path)
+    return _save_log_plot(fig, ax, path, bool(ok), "wall time of the method (s)",
+                          "CD-L1 (mm) vs the true surface (phantoms) or the input (others)",
+                          "Accuracy vs time (colour: method, marker: case group)", log_y=True, legend_size=7)
 
 
 def plot_cdl1_vs_points(path: Path, rows: list[dict]) -> Path:
@@ -111,17 +120,8 @@ def plot_cdl1_vs_points(path: Path, rows: list[dict]) -> Path:
             if xs:
                 drawn = True
                 ax.plot(xs, ys, style, marker="o", color=colours[noise], label=f"{sel[0]['method']}, noise {noise:g} mm")
-    if drawn:
-        ax.set_xscale("log")
-        ax.legend(fontsize=8, loc="best")
-    else:
-        _no_rows(ax)
-    ax.set_xlabel("input points")
-    ax.set_ylabel("CD-L1 (mm) to the true surface")
-    ax.set_title("CD-L1 vs point count (solid: SparseOcc default, dashed: screened Poisson)")
-    ax.grid(alpha=0.3, which="both")
-    fig.savefig(path, facecolor="white")
-    return Path(path)
+    return _save_log_plot(fig, ax, path, drawn, "input points", "CD-L1 (mm) to the true surface",
+                          "CD-L1 vs point count (solid: SparseOcc default, dashed: screened Poisson)")
 
 
 def montage(path: Path, images: list[Path], columns: int = 2) -> Path | None:
