@@ -16,7 +16,6 @@ from pathlib import Path
 import numpy as np
 import torch
 import trimesh
-from scipy import ndimage
 from skimage import measure
 
 from .config import MeshConfig
@@ -286,7 +285,7 @@ def extract_mesh(
             del idx
             todo = _unevaluated_corners_of_straddling_cells(vflat, eflat, shape, todo, level)
         if li < n_levels - 1:
-            crossing = _straddling_cells(values, level)
+            crossing = _straddling_cells(values, level)  # noqa: F841 - the next level seeds from it
     del evaluated
     report(n_levels, 0.0)
 

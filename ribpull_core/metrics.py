@@ -13,7 +13,6 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from .errors import RibPullInputError
-from .mesh import count_components
 from .pointcloud import PointCloud
 
 
@@ -160,7 +159,7 @@ def mesh_summary(mesh: trimesh.Trimesh) -> dict:
     work several times over for a million faces): watertight = every edge is shared by exactly two
     faces (trimesh's is_watertight), components = edge-connected face sets, volume = signed volume by
     the divergence theorem (trimesh's mass-properties volume)."""
-    from .mesh import face_component_labels, face_adjacency_pairs
+    from .mesh import face_adjacency_pairs, face_component_labels
 
     faces = np.asarray(mesh.faces, dtype=np.int64)
     v = np.asarray(mesh.vertices, dtype=np.float64)
