@@ -303,11 +303,9 @@ def _write_surface_artifacts(cloud, field, frame, fit_config, tmp: Path, report:
 def support_distance_mm(points_mm: np.ndarray) -> float:
     """How far from the input a reconstructed surface may lie and still count as supported (mm):
     twice the median distance to the 8th neighbour, i.e. a couple of sampling gaps."""
-    from scipy.spatial import cKDTree
+    from .pointcloud import sampling_gap
 
-    sample = points_mm[:: max(1, len(points_mm) // 50_000)]
-    d, _ = cKDTree(points_mm).query(sample, k=min(9, len(points_mm)), workers=-1)
-    return 2.0 * float(np.median(d[:, -1]))
+    return 2.0 * sampling_gap(points_mm)
 
 
 def _skeleton_of(mesh, cloud, report: _Reporter, n_points: int = 20_000):

@@ -57,6 +57,16 @@ class PointCloud:
         return self.points.min(axis=0), self.points.max(axis=0)
 
 
+def sampling_gap(points: np.ndarray, k: int = 8) -> float:
+    """Median distance from a point of (N, 3) `points` to its k-th neighbour (the points' units),
+    over a strided sample of at most ~50k points: the input's sampling gap."""
+    from scipy.spatial import cKDTree
+
+    sample = points[:: max(1, len(points) // 50_000)]
+    d, _ = cKDTree(points).query(sample, k=min(k + 1, len(points)), workers=-1)
+    return float(np.median(d[:, -1]))
+
+
 def mask_voxel_indices(cloud: PointCloud) -> np.ndarray:
     """(N, 3) int64 voxel indices (i, j, k) of a label-map cloud's points (voxel centres in mm), put
     back on the grid through the inverse of its NIfTI affine."""

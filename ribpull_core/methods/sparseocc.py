@@ -34,6 +34,7 @@ from ..losses import (
     sampling_loss,
     sign_margin_loss,
 )
+from ..pointcloud import sampling_gap
 from .base import FittedField, KnownOccupancy, Method, knn_sigma, sample_pull_queries
 from .training import ScheduleConfig
 
@@ -223,9 +224,7 @@ def outside_mask(points_unit: np.ndarray, block_factor: float = 1.0, max_cells: 
     without crossing the shell is outside. Cavities (rib interiors) are never reached, so they are
     never labelled.
     """
-    tree = cKDTree(points_unit)
-    d8, _ = tree.query(points_unit[:: max(1, len(points_unit) // 50_000)], k=min(9, len(points_unit)), workers=-1)
-    block = block_factor * float(np.median(d8[:, -1]))
+    block = block_factor * sampling_gap(points_unit)
     lo, hi = points_unit.min(0), points_unit.max(0)
     spacing = max(block / 2.0, float((hi - lo).max() + 8 * block) / max_cells)
     origin = lo - 3 * block
@@ -304,13 +303,6 @@ def field_resolution(f: FieldConfig, sampling_gap: float, label_map: bool = Fals
         return int(f.grid_max_resolution)
     res = round(2 * f.grid_domain / (factor * sampling_gap))
     return int(min(max(res, 2 * f.grid_base_resolution), f.grid_max_resolution))
-
-
-def sampling_gap(points_unit: np.ndarray, k: int = 8) -> float:
-    """Median distance from an input point to its k-th neighbour (unit frame), over <= 50k points."""
-    sample = points_unit[:: max(1, len(points_unit) // 50_000)]
-    d, _ = cKDTree(points_unit).query(sample, k=min(k + 1, len(points_unit)), workers=-1)
-    return float(np.median(d[:, -1]))
 
 
 def drop_isolated_points(points: np.ndarray, factor: float, k: int = 8) -> np.ndarray:
