@@ -6,7 +6,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.ribpull-install-stamp
 SAMPLE := var/samples/points.ply
 
-.PHONY: help install run test test-service openapi sample clean-storage
+.PHONY: help install run test test-service openapi sample clean-storage migrate
 
 help:
 	@echo "make run           install (if needed) and start Redis + worker + API on http://127.0.0.1:$${PORT:-8000}"
@@ -14,6 +14,7 @@ help:
 	@echo "make test-service  only the service tests (tests/test_service_*.py)"
 	@echo "make sample        write the synthetic sample ribcage to $(SAMPLE)"
 	@echo "make openapi       regenerate openapi/openapi.json"
+	@echo "make migrate       upgrade the job database (RIBPULL_DATABASE_URL, else the SQLite file) to this code's schema"
 
 # pip install -e '.[dev]' once per pyproject.toml content (stamp = its sha256)
 install:
@@ -36,6 +37,10 @@ test-service: install
 
 sample: install
 	@$(PY) -c "from ribpull_core.phantom import write_phantom; p = write_phantom('var/samples'); print('wrote', p['points'])"
+
+# Alembic revisions in app/migrations/versions/ (app/migrate.py); the API and workers refuse an old schema
+migrate: install
+	@$(VENV)/bin/ribpull-db upgrade
 
 openapi: install
 	@$(PY) scripts/export_openapi.py openapi/openapi.json

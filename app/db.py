@@ -1,14 +1,14 @@
 """The durable job store (SQLAlchemy 2): the ONE authoritative record of every job.
 
 Shared by the API and the worker. SQLite (WAL mode, busy timeout) by default, Postgres through
-DATABASE_URL. State transitions that can race (claim, cancel, finish, sweep) are single conditional
+DATABASE_URL. The schema is owned by Alembic (app/migrate.py, revisions in app/migrations/versions/):
+a change to these models needs a revision (`ribpull-db revision -m ... --autogenerate`). State transitions that can race (claim, cancel, finish, sweep) are single conditional
 UPDATE statements, so they are atomic on both databases and never need row locks.
 """
 
 from __future__ import annotations
 
 import threading
-import time
 from datetime import datetime, timezone
 from typing import Any
 
@@ -28,7 +28,6 @@ from sqlalchemy import (
     text,
 )
 from sqlalchemy.engine import Engine
-from sqlalchemy.exc import OperationalError
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, sessionmaker
 
 from .settings import Settings
@@ -143,14 +142,15 @@ def make_engine(settings: Settings) -> Engine:
                 cur.close()
         else:
             eng = create_engine(url, pool_pre_ping=True, pool_size=5, max_overflow=10)
-        for attempt in range(5):  # API and worker may start together: tolerate a create race
-            try:
-                Base.metadata.create_all(eng)
-                break
-            except OperationalError:
-                if attempt == 4:
-                    raise
-                time.sleep(0.2 * (attempt + 1))
+        # Alembic owns the schema: an empty database is created by the migrations, one at head is
+        # used, anything else raises migrate.SchemaError naming the command to run
+        from .migrate import ensure_schema
+
+        try:
+            ensure_schema(eng)
+        except Exception:
+            eng.dispose()
+            raise
         _engines[url] = eng
         return eng
 

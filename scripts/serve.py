@@ -9,6 +9,8 @@ free loopback port with an append-only file under <storage>/redis, unless RIBPUL
 REDIS_URL is set, in which case that Redis is used. The script supervises: a worker, API or Redis that
 exits is restarted with back-off (1, 2, 4 ... 30 s) and logged; only Ctrl-C / SIGTERM stops the
 stack. A job that was running is picked up again (its heartbeat goes stale and the sweep re-queues it).
+Before anything starts, the embedded SQLite job store is upgraded to this code's schema (app/migrate.py);
+an external RIBPULL_DATABASE_URL is only created when empty (an old one needs `make migrate`).
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from app import launcher
+from app import launcher, migrate
 from app.settings import Settings
 
 
@@ -47,6 +49,11 @@ def main(argv: list[str] | None = None) -> int:
 
     if launcher.port_open(host if host != "0.0.0.0" else "127.0.0.1", port):
         print(f"port {port} is already in use; set PORT=<another port>", file=sys.stderr)
+        return 2
+    try:
+        prepare_database(settings)
+    except migrate.SchemaError as exc:
+        print(f"could not start: {exc}", file=sys.stderr)
         return 2
 
     env = dict(os.environ)
@@ -117,6 +124,18 @@ def main(argv: list[str] | None = None) -> int:
         # the job is re-queued on the next start (stale heartbeat -> sweep, or Redis redelivery)
         launcher.stop(procs.get("worker"), timeout=8)
         launcher.stop(procs.get("redis"), timeout=10)
+
+
+def prepare_database(settings: Settings) -> None:
+    """Our own embedded SQLite is upgraded to this code's schema; an external database
+    (RIBPULL_DATABASE_URL) is created when empty and otherwise left to `make migrate`
+    (migrate.SchemaError, naming the command, when it is behind)."""
+    if not settings.database_url:
+        before, after = migrate.upgrade(settings.db_url)
+        if before != after:
+            print(f"job database {settings.db_url}: schema {before or '(new)'} -> {after}", flush=True)
+        return
+    migrate.ensure_schema_at(settings.db_url)
 
 
 BACKOFF_FIRST_S = 1.0

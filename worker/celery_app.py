@@ -129,6 +129,20 @@ def stop_maintenance() -> None:
         _thread.join(timeout=5)
 
 
+@signals.worker_init.connect
+def _on_worker_init(**_kw) -> None:
+    """Refuse to start against a job database whose schema is not this code's (app/migrate.py):
+    the message names the command to run. Raised as SystemExit: Celery logs and swallows
+    ordinary exceptions from signal handlers."""
+    from app.migrate import SchemaError, ensure_schema_at
+
+    try:
+        ensure_schema_at(settings.db_url)
+    except SchemaError as exc:
+        log.critical("%s", exc)
+        raise SystemExit(f"ribpull worker not started: {exc}") from None
+
+
 @signals.worker_process_init.connect
 def _on_process_init(**_kw) -> None:
     """A prefork pool process: fresh DB connections, torch threads, warm imports, maintenance."""

@@ -1,0 +1,1 @@
+"""Alembic migration environment of the job store (env.py + versions/); run through app.migrate."""
