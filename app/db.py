@@ -107,6 +107,9 @@ class Job(Base):
 
     artifacts: Mapped[list[str]] = mapped_column(JSON, default=list)
     artifacts_deleted: Mapped[bool] = mapped_column(Boolean, default=False)
+    # which attempt's published outputs the job's artifacts are (app/storage.ArtifactStore key), set in
+    # the same UPDATE that marks it succeeded; None = jobs/<id>/artifacts/ (jobs from before revision 0002)
+    artifacts_ref: Mapped[str | None] = mapped_column(String(64), nullable=True)
     metrics: Mapped[dict[str, Any] | None] = mapped_column(JSON, nullable=True)
 
     webhook_url: Mapped[str | None] = mapped_column(Text, nullable=True)
