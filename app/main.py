@@ -4,7 +4,8 @@ Run: `uvicorn app.main:app --http app.httpserver:HardenedH11Protocol` (or `make 
 configured by environment variables (app/settings.py); the job store is shared with the Celery worker
 (worker/celery_app.py), and every job-status change goes through app/state.py.
 
-Layout: routers in app/routers/ (health, jobs, artifacts, query) with typed dependencies (app/deps.py);
+Layout: routers in app/routers/ (health, jobs, artifacts, query; web: the page at `/`, files in app/web/)
+with typed dependencies (app/deps.py);
 middleware (nosniff, problem+json for every error, body timeout, body budgets) in app/middleware.py.
 """
 
@@ -22,7 +23,7 @@ from .db import make_engine
 from .middleware import BodyLimit, BodyTimeout, Hardening, query_body_budget
 from .problems import install_handlers
 from .query import FieldCache
-from .routers import artifacts, health, jobs, query
+from .routers import artifacts, health, jobs, query, web
 from .routers.artifacts import ARTIFACT_NAMES  # noqa: F401  (re-exported: == ribpull_core.pipeline.ARTIFACT_NAMES)
 from .schemas import JobParams, Problem
 from .settings import Settings, get_settings
@@ -64,7 +65,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(BodyLimit, query_limit=query_body_budget(settings.max_query_points))
     app.add_middleware(BodyTimeout, timeout=settings.body_timeout_s)
     app.add_middleware(Hardening)
-    for r in (health.router, jobs.router, artifacts.router, query.router):
+    for r in (health.router, jobs.router, artifacts.router, query.router, web.router):
         app.include_router(r)
 
     def custom_openapi():
