@@ -6,7 +6,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.ribpull-install-stamp
 SAMPLE := var/samples/points.ply
 
-.PHONY: help install run test test-service openapi sample clean-storage migrate
+.PHONY: help install web run test test-service openapi sample clean-storage migrate
 
 help:
 	@echo "make run           install (if needed) and start Redis + worker + API on http://127.0.0.1:$${PORT:-8000}"
@@ -14,6 +14,7 @@ help:
 	@echo "make test-service  only the service tests (tests/test_service_*.py)"
 	@echo "make sample        write the synthetic sample ribcage to $(SAMPLE)"
 	@echo "make openapi       regenerate openapi/openapi.json"
+	@echo "make web           (re)vendor the web page's three.js from web/package-lock.json (npm ci)"
 	@echo "make migrate       upgrade the job database (RIBPULL_DATABASE_URL, else the SQLite file) to this code's schema"
 
 # pip install -e '.[dev]' once per pyproject.toml content (stamp = its sha256)
@@ -24,6 +25,11 @@ install:
 	echo "installing ribpull[dev] into $(VENV) (pyproject.toml changed or first run)"; \
 	$(PY) -m pip install -e '.[dev]' || exit 1; \
 	echo "$$want" > "$(STAMP)"
+	@$(PY) scripts/build_web.py
+
+# the web page's three.js (web/package-lock.json -> app/web/static/vendor/; make install runs it)
+web:
+	@$(PY) scripts/build_web.py --force
 
 run: install
 	@[ -f $(SAMPLE) ] || $(MAKE) --no-print-directory sample || echo "(no sample written; try make sample)"
