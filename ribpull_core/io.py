@@ -20,7 +20,7 @@ from ribpull_core.errors import RibPullInputError
 from ribpull_core.pointcloud import PointCloud
 
 SUPPORTED_EXTENSIONS: tuple[str, ...] = (
-    ".ply", ".xyz", ".txt", ".csv", ".npy", ".npz", ".pcd", ".nii", ".nii.gz",
+    ".ply", ".xyz", ".txt", ".csv", ".npy", ".npz", ".pcd", ".nii", ".nii.gz", ".dcm",
 )
 WRITABLE_EXTENSIONS: tuple[str, ...] = (".ply", ".xyz", ".txt", ".csv", ".npy", ".npz")
 
@@ -229,10 +229,11 @@ def _as_int_labels(values: np.ndarray, what: str) -> np.ndarray:
 _FORMAT_ALIASES = {
     "ply": "ply", "xyz": "xyz", "txt": "txt", "csv": "csv", "text": "txt", "npy": "npy",
     "npz": "npz", "pcd": "pcd", "nifti": "nifti", "nii": "nifti", "nii.gz": "nifti",
+    "dicom": "dicom", "dcm": "dicom",
 }
 _EXT_FORMAT = {
     ".ply": "ply", ".xyz": "xyz", ".txt": "txt", ".csv": "csv", ".npy": "npy", ".npz": "npz",
-    ".pcd": "pcd", ".nii": "nifti", ".nii.gz": "nifti",
+    ".pcd": "pcd", ".nii": "nifti", ".nii.gz": "nifti", ".dcm": "dicom",
 }
 
 
@@ -293,6 +294,11 @@ def load_point_cloud(
         if fmt == "nifti":
             check_nifti_header(path, MAX_NIFTI_BYTES if max_nifti_bytes is None else max_nifti_bytes)
             cloud = _load_nifti(path, labels, max_points)
+        elif fmt == "dicom":  # a DICOM SEG: a label map in the LPS patient frame (ribpull_core.dicom)
+            from ribpull_core.dicom.seg_read import load_seg
+
+            cloud = load_seg(path, labels, max_points,
+                             MAX_NIFTI_BYTES if max_nifti_bytes is None else max_nifti_bytes)
         else:
             cloud = _LOADERS[fmt](path, max_points)
     except (RibPullInputError, MemoryError):
@@ -359,6 +365,8 @@ def _sniff(path: Path) -> str | None:
         return "nifti"
     if head.startswith((b"# .PCD", b"VERSION", b"FIELDS")):
         return "pcd"
+    if head[128:132] == b"DICM":  # DICOM Part 10 preamble
+        return "dicom"
     return None
 
 
@@ -882,7 +890,17 @@ def _nifti_to_cloud(img, labels: list[int] | None, max_points: int) -> PointClou
     vol = _integral_label_volume(vol)
     present = _present_labels(vol)
     selected, names = _select_labels(present, labels)
-    mask = _label_mask(vol, selected) if len(selected) < len(present) else vol != 0
+    return label_volume_cloud(vol, affine, selected, names, max_points, all_present=len(selected) == len(present))
+
+
+def label_volume_cloud(vol: np.ndarray, affine: np.ndarray, selected: list[int], names: dict[int, str],
+                       max_points: int, all_present: bool = False) -> PointCloud:
+    """An integer label volume -> PointCloud of the voxel centres (mm, through `affine`: voxel index
+    -> mm) holding one of the `selected` values, labelled with their value and named by `names`.
+    Shared by the NIfTI loader and the DICOM SEG reader (ribpull_core.dicom.seg_read).
+    all_present: every non-zero value is selected (a plain `vol != 0` mask, no lookup)."""
+    shape = tuple(int(s) for s in vol.shape)
+    mask = vol != 0 if all_present else _label_mask(vol, selected)
     count = int(np.count_nonzero(mask))
     _too_many(count, max_points, "selected label voxels")
     if mask.flags.f_contiguous and not mask.flags.c_contiguous:  # nibabel arrays: walk in memory order

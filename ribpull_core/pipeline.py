@@ -12,6 +12,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from .dicom.export import DICOM_ARTIFACTS
+
 #: artifact file names the pipeline can produce (the service serves exactly these)
 ARTIFACT_NAMES = (
     "mesh.ply", "mesh.stl", "mesh.obj", "mesh.glb",
@@ -20,7 +22,7 @@ ARTIFACT_NAMES = (
     "metrics.json",
     "skeleton.json", "skeleton.glb", "skeleton.obj", "scene.glb",
     "preview.png",
-)
+) + DICOM_ARTIFACTS  # the DICOM ones only for DICOM SEG inputs (ribpull_core.dicom.export)
 
 
 @dataclass
@@ -244,6 +246,7 @@ def run_pipeline(
             field, frame = fit_field(cloud, fit_config, device, report)
         artifacts = _write_surface_artifacts(cloud, field, frame, fit_config, tmp, report, timed)
         mesh = artifacts.pop("_mesh")
+        sdf = artifacts.pop("_sdf")
         skeleton = None
         if options.skeleton:
             with timed("skeleton"):
@@ -259,6 +262,10 @@ def run_pipeline(
 
                 polylines = _polylines(skeleton) if skeleton is not None else None
                 artifacts["preview.png"] = Path(render_preview(tmp / "preview.png", mesh, polylines, title=f"RibPull {fit_config.preset}"))
+            if cloud.dicom_source is not None:  # a DICOM input gets DICOM results on its own geometry
+                from .dicom.export import write_dicom_outputs
+
+                artifacts.update(write_dicom_outputs(tmp, cloud, mesh, *sdf, metrics))
         metrics["timings_s"] = {**timings, "total": round(time.perf_counter() - t_all, 3)}
         metrics["device"] = str(device)
         metrics["torch_threads"] = threads
@@ -279,6 +286,7 @@ def run_pipeline(
 
 def _write_surface_artifacts(cloud, field, frame, fit_config, tmp: Path, report: _Reporter, timed) -> dict:
     """Mesh (PLY/STL/OBJ/GLB), SDF NIfTI and weights into `tmp`; returns name -> path (+ "_mesh")."""
+    from .dicom import LPS_FROM_RAS
     from .mesh import export_mesh, extract_mesh, remove_unsupported_components
     from .sdf import sdf_grid_for, signed_distance_volume, write_nifti
     from .weights import save_field
@@ -293,10 +301,13 @@ def _write_surface_artifacts(cloud, field, frame, fit_config, tmp: Path, report:
     with timed("sdf"):
         shape, affine = sdf_grid_for(cloud, frame, fit_config.sdf)
         volume = signed_distance_volume(mesh, field, frame, shape, affine)
-        artifacts["sdf.nii.gz"] = Path(write_nifti(tmp / "sdf.nii.gz", volume, affine))
+        # NIfTI's world is RAS; a DICOM input's frame is LPS: the file says so through its affine
+        nifti_affine = affine if cloud.dicom_source is None else LPS_FROM_RAS @ affine
+        artifacts["sdf.nii.gz"] = Path(write_nifti(tmp / "sdf.nii.gz", volume, nifti_affine))
     st, js = save_field(field, frame, tmp, extra={"preset": fit_config.preset, "fit_config": fit_config.to_dict()})
     artifacts["model.safetensors"], artifacts["model.json"] = Path(st), Path(js)
     artifacts["_mesh"] = mesh
+    artifacts["_sdf"] = (volume, affine)
     return artifacts
 
 

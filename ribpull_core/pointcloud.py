@@ -40,6 +40,9 @@ class PointCloud:
     occupancy_points: np.ndarray | None = None
     occupancy_inside: np.ndarray | None = None
     occupancy_distance_mm: np.ndarray | None = None
+    #: a DICOM SEG input's references (ribpull_core.dicom.seg_read.SegSource): its points, affine and
+    #: outputs are in the LPS patient frame, and the DICOM outputs reference its study and series
+    dicom_source: object | None = None
 
     def __post_init__(self) -> None:
         self.points = np.ascontiguousarray(self.points, dtype=np.float64).reshape(-1, 3)
@@ -127,7 +130,8 @@ def mask_boundary_cloud(cloud: PointCloud, max_points: int = 120_000, seed: int 
                       source_format=cloud.source_format, source_bytes=cloud.source_bytes,
                       nifti_affine=cloud.nifti_affine, nifti_shape=cloud.nifti_shape,
                       label_names=dict(cloud.label_names), occupancy_points=cloud.occupancy_points,
-                      occupancy_inside=cloud.occupancy_inside, occupancy_distance_mm=cloud.occupancy_distance_mm)
+                      occupancy_inside=cloud.occupancy_inside, occupancy_distance_mm=cloud.occupancy_distance_mm,
+                      dicom_source=cloud.dicom_source)
 
 
 def voxel_spacing_mm(cloud: PointCloud) -> np.ndarray:
