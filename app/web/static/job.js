@@ -127,6 +127,7 @@ async function showResult(job) {
       ribList: document.getElementById('rib-list'),
     });
     document.getElementById('show-surface').addEventListener('change', (ev) => viewer.setSurfaceVisible(ev.target.checked));
+    document.getElementById('reset-view').addEventListener('click', () => viewer.resetView());
     document.getElementById('show-all').addEventListener('change', (ev) => viewer.setAllRibsVisible(ev.target.checked));
     viewerState.remove();
   } catch (err) {

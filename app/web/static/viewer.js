@@ -10,7 +10,7 @@ import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
 
 const GRID_MM = 2.0; // cell of the node lookup grid: tube vertices lie 0.6 mm from their curve
-const PICK_COLOR = new THREE.Color(0xffd400);
+const PICK_COLOR = new THREE.Color(0xff1a00); // the rib palette below keeps clear of red
 const UNLABELLED = 'other'; // skeleton edges no rib curve covers (junctions, spurs)
 
 function parseGlb(loader, bytes) {
@@ -111,7 +111,7 @@ function splitSkeleton(gltfScene, skeleton) {
 }
 
 function ribColor(r, n) {
-  return new THREE.Color().setHSL((r / Math.max(n, 1)) * 0.85, 0.75, 0.5);
+  return new THREE.Color().setHSL(0.12 + (r / Math.max(n, 1)) * 0.72, 0.7, 0.45);
 }
 
 /**
@@ -148,7 +148,7 @@ export async function createViewer(container, { meshGlb, skeletonGlb, skeleton, 
   meshGltf.scene.traverse((obj) => {
     if (obj.isMesh) {
       obj.material = new THREE.MeshStandardMaterial({
-        color: 0xe1d7be, roughness: 0.8, transparent: true, opacity: 0.45, depthWrite: false, side: THREE.DoubleSide,
+        color: 0xe1d7be, roughness: 0.8, transparent: true, opacity: 0.3, depthWrite: false, side: THREE.DoubleSide,
       });
     }
   });
@@ -189,23 +189,30 @@ export async function createViewer(container, { meshGlb, skeletonGlb, skeleton, 
     }
   }
 
-  // frame the surface: centre, distance from its bounding sphere
-  const box = new THREE.Box3().setFromObject(surface);
-  const sphere = box.getBoundingSphere(new THREE.Sphere());
   const controls = new OrbitControls(camera, canvas);
-  controls.target.copy(sphere.center);
-  const dist = sphere.radius / Math.sin(THREE.MathUtils.degToRad(camera.fov / 2)) * 1.05;
-  camera.position.copy(sphere.center).add(new THREE.Vector3(0, dist, 0));
-  camera.near = Math.max(dist / 100, 0.1);
-  camera.far = dist * 10;
-  controls.update();
+  const box = new THREE.Box3().setFromObject(surface);
+  /** Look at the surface from the front (+y): its x extent and z extent fill the view. */
+  function frame(aspect) {
+    const size = box.getSize(new THREE.Vector3());
+    const centre = box.getCenter(new THREE.Vector3());
+    const tan = Math.tan(THREE.MathUtils.degToRad(camera.fov / 2));
+    const dist = Math.max(size.z / 2 / tan, size.x / 2 / (tan * aspect)) * 1.12 + size.y / 2;
+    controls.target.copy(centre);
+    camera.position.copy(centre).add(new THREE.Vector3(0, dist, 0));
+    camera.near = Math.max(dist / 100, 0.1);
+    camera.far = dist * 10;
+    camera.updateProjectionMatrix();
+    controls.update();
+  }
 
   const render = () => renderer.render(scene, camera);
+  let framed = false;
   const resize = () => {
     const w = container.clientWidth || 640;
     const h = Math.max(360, Math.round(w * 0.62));
     renderer.setSize(w, h, true);
     camera.aspect = w / h;
+    if (!framed) { frame(camera.aspect); framed = true; }
     camera.updateProjectionMatrix();
     render();
   };
@@ -283,6 +290,7 @@ export async function createViewer(container, { meshGlb, skeletonGlb, skeleton, 
     ribs: ribs.map((r) => r.label),
     pick,
     setSurfaceVisible(v) { surface.visible = v; render(); },
+    resetView() { frame(camera.aspect); render(); },
     setAllRibsVisible(v) {
       ribs.forEach((r) => { r.group.visible = v; });
       ribList.querySelectorAll('input[type=checkbox]').forEach((b) => { b.checked = v; });
