@@ -6,6 +6,13 @@
 #     --build-arg BASE_IMAGE=nvidia/cuda:12.8.1-cudnn-runtime-ubuntu24.04 \
 #     --build-arg TORCH_INDEX_URL=https://download.pytorch.org/whl/cu128 .
 ARG BASE_IMAGE=python:3.11-slim
+
+# the web page's three.js: the exact versions of web/package-lock.json (npm ci checks their hashes)
+FROM node:20-slim AS web
+WORKDIR /web
+COPY web/package.json web/package-lock.json ./
+RUN npm ci --ignore-scripts --no-audit --no-fund
+
 FROM ${BASE_IMAGE}
 
 ARG TORCH_INDEX_URL=https://download.pytorch.org/whl/cpu
@@ -37,6 +44,10 @@ COPY ribpull_core ./ribpull_core
 COPY app ./app
 COPY worker ./worker
 COPY scripts ./scripts
+COPY web ./web
+# scripts/build_web.py copies the files the page loads into app/web/static/vendor/ (package data)
+RUN --mount=type=bind,from=web,source=/web/node_modules,target=/tmp/node_modules \
+    python3 scripts/build_web.py --node-modules /tmp/node_modules && python3 scripts/build_web.py --check
 RUN pip install ".[postgres]" \
     && useradd --system --uid 10001 --home-dir /data ribpull \
     && mkdir -p /data && chown ribpull /data
