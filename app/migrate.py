@@ -251,7 +251,7 @@ def _new_revision(message: str, autogenerate: bool) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from .settings import Settings
+    from .settings import Settings, normalize_db_url
 
     ap = argparse.ArgumentParser(prog="ribpull-db", description="RibPull job database schema (Alembic).")
     ap.add_argument("--url", help="database URL (default: RIBPULL_DATABASE_URL / DATABASE_URL, else the "
@@ -270,7 +270,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.getLogger("alembic").setLevel(logging.INFO)
 
     settings = Settings()
-    url = args.url or settings.db_url
+    url = normalize_db_url(args.url) if args.url else settings.db_url
     if url.startswith("sqlite") and not args.url:
         settings.storage_path.mkdir(parents=True, exist_ok=True)
     try:

@@ -33,3 +33,20 @@ def service(tmp_path_factory):
 def sample_ply(tmp_path_factory):
     """The synthetic ribcage point cloud (20k points) written by ribpull_core.phantom."""
     return servicekit.make_sample(tmp_path_factory.mktemp("sample"))
+
+
+@pytest.fixture(scope="session")
+def postgres():
+    """A throw-away PostgreSQL cluster (tests/pgcluster.py); installs Debian's `postgresql` as root
+    when missing, else skips loudly (a warning in the summary, not only an 's')."""
+    import warnings
+
+    import pgcluster
+
+    bindir, why = pgcluster.ensure_postgres()
+    if bindir is None:
+        warnings.warn(f"PostgreSQL tests SKIPPED: {why}", stacklevel=1)
+        pytest.skip(f"PostgreSQL unavailable: {why}")
+    cluster = pgcluster.PgCluster(bindir).start()
+    yield cluster
+    cluster.stop()

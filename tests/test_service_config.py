@@ -61,7 +61,7 @@ def test_settings_read_documented_env_vars(monkeypatch):
     monkeypatch.setenv("RIBPULL_API_KEYS", "a, b ,")
     monkeypatch.setenv("RIBPULL_MAX_UPLOAD_MB", "3")
     s = Settings()
-    assert s.db_url == "postgresql://u:p@db/x" and s.port == 9123
+    assert s.db_url == "postgresql+psycopg2://u:p@db/x" and s.port == 9123
     assert len(s.key_hashes) == 2 and s.max_upload_bytes == 3 * 1024 * 1024
     monkeypatch.setenv("RIBPULL_DATABASE_URL", "sqlite:////tmp/x.db")
     assert Settings().db_url == "sqlite:////tmp/x.db"
