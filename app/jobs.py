@@ -11,7 +11,7 @@ from celery import Celery
 from .db import Job
 from .schemas import json_safe
 from .settings import Settings
-from .storage import artifacts_dir, media_type
+from .storage import artifact_store, media_type
 
 log = logging.getLogger("ribpull.api")
 
@@ -56,7 +56,7 @@ def job_to_dict(job: Job, settings: Settings, base: str = "") -> dict:
     """The public job resource (schemas.JobOut)."""
     artifacts = []
     if job.status == "succeeded" and not job.artifacts_deleted:
-        adir = artifacts_dir(settings, job.id)
+        adir = artifact_store(settings).local_dir(job.id, job.artifacts_ref)
         for name in job.artifacts or []:
             try:
                 size = (adir / name).stat().st_size

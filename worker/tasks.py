@@ -18,12 +18,12 @@ import time
 import traceback
 
 from app import state
-from app.db import Job, get_job, make_sessionmaker, utcnow
+from app.db import TERMINAL, Job, get_job, make_sessionmaker, utcnow
 from app.jobs import TASK_WEBHOOK, enqueue
 from app.problems import scrub_paths
 from app.schemas import finite_or_none, json_safe
 from app.settings import Settings
-from app.storage import ARTIFACT_MEDIA_TYPES, artifacts_dir, input_file, job_dir
+from app.storage import artifact_store, input_file
 
 from . import celery_app as _capp
 from .celery_app import celery_app, configure_torch, settings
@@ -80,7 +80,7 @@ class Reporter:
                 log.warning("job %s: cancel not honoured within %.1f s; ending this pool process",
                             self.job_id, self.settings.cancel_grace_s)
                 try:
-                    shutil.rmtree(job_dir(self.settings, self.job_id) / f".work-{self.token}", ignore_errors=True)
+                    artifact_store(self.settings).discard(self.job_id, self.token)
                     notify(self.job_id, self.settings)
                 finally:
                     os._exit(0)
@@ -180,16 +180,6 @@ def _pipeline_function(settings: Settings):
     return getattr(importlib.import_module(mod_name), fn_name or "run_pipeline")
 
 
-def _clean_job_dir(settings: Settings, job_id: str) -> None:
-    """Start clean: drop outputs of earlier attempts (a re-run never mixes files of two attempts)."""
-    jdir = job_dir(settings, job_id)
-    shutil.rmtree(artifacts_dir(settings, job_id), ignore_errors=True)
-    if jdir.is_dir():
-        for p in jdir.iterdir():
-            if p.name.startswith((".work-", ".ribpull-")):  # ours, and the pipeline's own temp dirs
-                shutil.rmtree(p, ignore_errors=True)
-
-
 def _metrics_for_db(metrics) -> dict | None:
     if not metrics:
         return None
@@ -213,11 +203,13 @@ def execute_job(job_id: str, settings: Settings) -> str:
     token = claim.token
     job = claim.job
     log.info("job %s: attempt %d started (%s)", job_id, job.attempts, state.worker_id())
-    work = job_dir(settings, job_id) / f".work-{token}"
+    # this attempt writes only under its own token; earlier attempts' leftovers are removed once the
+    # job is final (store.keep_only), never while another attempt might still be writing them
+    store = artifact_store(settings)
+    work = store.work_dir(job_id, token)
     reporter = None
     outcome = "failed"
     try:
-        _clean_job_dir(settings, job_id)
         inp = input_file(settings, job_id)
         if inp is None:
             raise _InputMissing()
@@ -250,15 +242,15 @@ def execute_job(job_id: str, settings: Settings) -> str:
             reporter.stop()
             if reporter.lost:
                 return "lost"
-            final = artifacts_dir(settings, job_id)
-            shutil.rmtree(final, ignore_errors=True)
-            os.rename(work, final)  # atomic: the artifacts appear all at once
-            names = [n for n in ARTIFACT_MEDIA_TYPES if (final / n).is_file()]
+            names = store.publish(job_id, token)  # one rename to a name only this attempt uses
             ok = state.finish(
-                sm, job_id, token, "succeeded", artifacts=names,
+                sm, job_id, token, "succeeded", artifacts=names, artifacts_ref=token,
                 metrics=_metrics_for_db(getattr(result, "metrics", None)),
                 stage="done", fraction=1.0, message="finished",
             )
+            if not ok:  # another attempt owns the job: remove only this attempt's outputs
+                store.discard(job_id, token)
+                log.warning("job %s: finished but another attempt owns it now; outputs discarded", job_id)
             outcome = "succeeded" if ok else "lost"
     except _InputMissing:
         state.finish(sm, job_id, token, "failed", error_code="input_missing",
@@ -277,10 +269,23 @@ def execute_job(job_id: str, settings: Settings) -> str:
             reporter.stop()
         if work.exists():
             shutil.rmtree(work, ignore_errors=True)
+        _collect_leftovers(sm, store, job_id, token)
     log.info("job %s: %s", job_id, outcome)
     if outcome in ("succeeded", "failed", "canceled"):
         notify(job_id, settings)
     return outcome
+
+
+def _collect_leftovers(sm, store, job_id: str, token: str) -> None:
+    """When THIS attempt ended the job (it is final and still carries our claim token), no other
+    attempt can win any more: remove what crashed or lost attempts left in its storage."""
+    try:
+        with sm() as s:
+            job = get_job(s, job_id)
+        if job is not None and job.status in TERMINAL and job.claim_token == token:
+            store.keep_only(job_id, job.artifacts_ref)
+    except Exception as exc:  # noqa: BLE001 - housekeeping never fails a job
+        log.warning("job %s: could not remove leftovers of earlier attempts: %s", job_id, exc)
 
 
 def notify(job_id: str, settings: Settings) -> None:

@@ -9,7 +9,7 @@ from fastapi.responses import FileResponse
 
 from ..deps import JobIdPath, OwnerDep, SessionsDep, SettingsDep, read_job
 from ..problems import ProblemError
-from ..storage import ARTIFACT_MEDIA_TYPES, artifacts_dir, media_type
+from ..storage import ARTIFACT_MEDIA_TYPES, artifact_store, media_type
 from . import problems
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
@@ -46,7 +46,7 @@ def get_artifact(
         raise ProblemError(410, "artifacts_deleted", "this job's files were deleted")
     if job.status != "succeeded":
         raise ProblemError(404, "artifact_not_found", f"job is {job.status}; artifacts exist once it succeeded")
-    path = artifacts_dir(settings, job_id) / name
+    path = artifact_store(settings).local_dir(job_id, job.artifacts_ref) / name
     if name not in (job.artifacts or []) or not path.is_file():
         raise ProblemError(404, "artifact_not_found", f"this job did not produce {name}")
     return FileResponse(path, media_type=media_type(name), filename=f"{name}")

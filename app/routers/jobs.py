@@ -7,7 +7,6 @@ import hashlib
 import json
 import logging
 import os
-import shutil
 import time
 import uuid
 from typing import Annotated
@@ -26,7 +25,7 @@ from ..netpolicy import webhook_target_problem
 from ..problems import INPUT_ERROR_STATUS, ProblemError, validation_problem
 from ..schemas import JobList, JobOut, JobParams, Status
 from ..settings import Settings
-from ..storage import input_dir, job_dir, rmtree_quiet
+from ..storage import artifact_store, input_dir, job_dir, rmtree_quiet
 from ..upload import receive_upload
 from . import problems
 
@@ -305,7 +304,7 @@ def delete_job(job_id: JobIdPath, response: Response, owner: OwnerDep, settings:
             return job_to_dict(read_job(sm, job_id, owner), settings, _base_url())
         if result.outcome == "files_deleted":
             cache.drop(job_id)
-            shutil.rmtree(job_dir(settings, job_id), ignore_errors=True)
+            artifact_store(settings).delete_job(job_id)
             response.status_code = 200
             return job_to_dict(read_job(sm, job_id, owner), settings, _base_url())
         time.sleep(0.05)  # the status changed under us: look again

@@ -8,7 +8,7 @@ from ..deps import FieldCacheDep, JobIdPath, OwnerDep, SessionsDep, SettingsDep,
 from ..problems import ProblemError
 from ..query import run_query
 from ..schemas import QueryIn, QueryOut
-from ..storage import artifacts_dir
+from ..storage import artifact_store
 from . import problems
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
@@ -31,7 +31,7 @@ def query_job(job_id: JobIdPath, body: QueryIn, owner: OwnerDep, settings: Setti
         raise ProblemError(409, "job_not_succeeded", f"job is {job.status}; query it once it has succeeded")
     if job.artifacts_deleted:
         raise ProblemError(409, "artifacts_deleted", "this job's files were deleted")
-    adir = artifacts_dir(settings, job_id)
+    adir = artifact_store(settings).local_dir(job_id, job.artifacts_ref)
     if not (adir / "model.safetensors").is_file():
         raise ProblemError(409, "no_model", "this job has no stored weights")
     return run_query(cache, job_id, adir, body.points_mm)
