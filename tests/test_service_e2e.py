@@ -38,15 +38,21 @@ def receiver():
     rx.close()
 
 
-def _smoke_job(service, sample_ply, **extra):
+@pytest.fixture(scope="module")
+def smoke_params():
+    """Params of the end-to-end smoke job (test_service_postgres.py, which reruns these flows, overrides it)."""
+    return SMOKE
+
+
+def _smoke_job(service, sample_ply, params, **extra):
     c = service.client()
-    r = submit(c, sample_ply, {**SMOKE, **extra})
+    r = submit(c, sample_ply, {**params, **extra})
     assert r.status_code == 202, r.text
     return c, r
 
 
-def test_smoke_job_end_to_end(service, sample_ply, receiver):
-    c, r = _smoke_job(service, sample_ply, webhook_url=receiver.url)
+def test_smoke_job_end_to_end(service, sample_ply, receiver, smoke_params):
+    c, r = _smoke_job(service, sample_ply, smoke_params, webhook_url=receiver.url)
     job = r.json()
     assert r.headers["location"] == f"/v1/jobs/{job['id']}"
     assert job["status"] in ("queued", "running")
