@@ -185,7 +185,14 @@ def test_submit_watch_view_pick_download_cancel(page, service, sample_ply, tmp_p
     with service.client() as c:
         assert c.get(f"/v1/jobs/{queued_id}").json()["artifacts_deleted"] is True
 
-    # 2. the job page while it runs: stage, iteration and the loss curve move
+    # 2. the list shows the running fit (stage, iteration, loss) and its loss curve; then the job's page
+    #    while it runs: stage, iteration and the loss curve move
+    page.wait_for_function(
+        f"""() => {{
+          const tr = document.querySelector('#jobs tr[data-job-id="{job_id}"]');
+          return tr && /fit \\d+\\/\\d+ · loss/.test(tr.textContent)
+            && Number(tr.querySelector('canvas.sparkline').dataset.points) >= 2;
+        }}""", timeout=90_000)
     row(page, job_id).locator("a").click()
     page.wait_for_url(f"**/jobs/{job_id}")
     seen_iterations: list[int] = []
@@ -201,6 +208,10 @@ def test_submit_watch_view_pick_download_cancel(page, service, sample_ply, tmp_p
     assert status == "succeeded", page.inner_text("main")[:2000] + service.tail()
     assert len(seen_iterations) >= 3 and seen_iterations == sorted(seen_iterations), seen_iterations
     assert int(page.get_attribute("#loss-chart", "data-points")) >= 3
+
+    # (the job canceled while running in step 7 starts now: its start-up overlaps steps 3-6)
+    with service.client() as c:
+        long_id = servicekit.submit(c, sample_ply, servicekit.LONG).json()["id"]
 
     # 3. the 3D view: a WebGL2 canvas that drew the surface and the ribs, and the 24 ribs listed
     page.wait_for_function("() => window.ribpullViewer !== undefined", timeout=60_000)
@@ -245,11 +256,11 @@ def test_submit_watch_view_pick_download_cancel(page, service, sample_ply, tmp_p
     assert Path(dl.value.path()).read_bytes() == mesh_glb
     if os.environ.get("RIBPULL_WEB_SCREENSHOT"):
         page.locator(f'#rib-list li[data-rib="{label}"] .rib-name').click()
-        page.screenshot(path=os.environ["RIBPULL_WEB_SCREENSHOT"], full_page=True)
+        page.evaluate("() => window.scrollTo(0, 0)")
+        page.screenshot(path=os.environ["RIBPULL_WEB_SCREENSHOT"], full_page=True,
+                        clip={"x": 0, "y": 0, "width": 1280, "height": 1080})
 
     # 7. cancel a running job from its page
-    with service.client() as c:
-        long_id = servicekit.submit(c, sample_ply, servicekit.LONG).json()["id"]
     page.goto(f"{url}/jobs/{long_id}")
     page.wait_for_function("() => /fit \\d+\\//.test(document.getElementById('progress-text').textContent)",
                            timeout=60_000)
