@@ -161,7 +161,13 @@ def test_bad_upload_shows_the_problem_title_and_detail(page, service, tmp_path):
     before = page.locator("#jobs tbody tr").count()
     page.set_input_files("#file", str(bad))
     page.select_option("#preset", "smoke")
+    page.fill("#labels", "1-x")  # refused by the page itself, with what to type instead
     page.click("#submit")
+    page.wait_for_selector("#upload-error:not([hidden])")
+    assert "labels: '1-x' is not a number or a range like 1-24" in page.inner_text("#upload-error")
+    page.fill("#labels", "")
+    page.click("#submit")
+    page.wait_for_selector("#upload-error .problem-title:not(:text-is('Error'))")
     page.wait_for_selector("#upload-error:not([hidden])")
     assert page.inner_text("#upload-error .problem-title") == want["title"]
     assert page.inner_text("#upload-error .problem-detail") == want["detail"]

@@ -137,6 +137,7 @@ async function refresh() {
     active = page.items.some((job) => !FINISHED.has(job.status));
   } catch (err) {
     showProblem(jobsError, err);
+    if (err.status === 401) return; // polls again once a key is entered (the key bar calls refresh)
   }
   if (seq === refreshSeq) pollTimer = setTimeout(refresh, active ? ACTIVE_POLL_MS : IDLE_POLL_MS);
 }

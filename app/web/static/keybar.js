@@ -14,18 +14,18 @@ export function initKeyBar(onChange) {
     state.textContent = note || (has ? 'API key set for this tab' : 'no API key');
     state.classList.toggle('warn', Boolean(note));
     forget.hidden = !has;
-    input.value = '';
   };
   form.addEventListener('submit', (ev) => {
     ev.preventDefault();
     setKey(input.value.trim());
+    input.value = '';
     render();
     onChange();
   });
   forget.addEventListener('click', () => { setKey(''); render(); onChange(); });
   document.addEventListener('ribpull:unauthorized', (ev) => {
     render(`this service needs an API key: ${ev.detail.detail || 'unauthorized'}`);
-    input.focus();
+    if (document.activeElement !== input) input.focus();
   });
   render();
 }
