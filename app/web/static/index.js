@@ -71,55 +71,72 @@ async function submit(ev) {
   }
 }
 
-function actionButton(job) {
-  if (!FINISHED.has(job.status)) {
-    const b = el('button', 'cancel', job.cancel_requested ? 'Canceling…' : 'Cancel');
-    b.disabled = job.cancel_requested;
-    b.addEventListener('click', () => act(job, b));
-    return b;
-  }
-  if (job.artifacts_deleted) return el('span', 'muted', 'files deleted');
-  const b = el('button', 'delete', 'Delete files');
-  b.title = 'Delete the input and the artifacts (the record is kept)';
-  b.addEventListener('click', () => act(job, b));
+/** What the row's action is: Cancel (queued/running), Delete files (finished), or nothing left to do. */
+function actionKind(job) {
+  if (!FINISHED.has(job.status)) return job.cancel_requested ? 'canceling' : 'cancel';
+  return job.artifacts_deleted ? 'deleted' : 'delete';
+}
+
+function actionButton(job, kind) {
+  if (kind === 'deleted') return el('span', 'muted', 'files deleted');
+  const b = el('button', kind === 'delete' ? 'delete' : 'cancel',
+    { cancel: 'Cancel', canceling: 'Canceling…', delete: 'Delete files' }[kind]);
+  b.disabled = kind === 'canceling';
+  if (kind === 'delete') b.title = 'Delete the input and the artifacts (the record is kept)';
+  b.addEventListener('click', () => act(job.id, b));
   return b;
 }
 
-async function act(job, button) {
+async function act(jobId, button) {
   button.disabled = true;
   clearProblem(jobsError);
   try {
-    await apiFetch(`/v1/jobs/${job.id}`, { method: 'DELETE' });
+    await apiFetch(`/v1/jobs/${jobId}`, { method: 'DELETE' });
   } catch (err) {
     showProblem(jobsError, err);
   }
   await refresh();
 }
 
-function jobRow(job) {
+/** The table row of a job, made once and updated in place on every poll (so a click is never lost
+ * to a re-render). */
+const rows = new Map();
+
+function makeRow(job) {
   const tr = el('tr');
   tr.dataset.jobId = job.id;
-  tr.dataset.status = job.status;
   const link = el('a', '', job.id.slice(0, 8));
   link.href = `/jobs/${job.id}`;
-  const name = el('div', 'muted', job.input.filename);
   const idCell = el('td');
-  idCell.append(link, name);
-  const status = el('td', `status status-${job.status}`, job.status);
+  idCell.append(link, el('div', 'muted', job.input.filename));
+  const status = el('td');
   const prog = el('td', 'progress');
   const bar = el('progress');
   bar.max = 1;
-  bar.value = job.progress.fraction || 0;
-  prog.append(bar, el('div', 'progress-text', progressText(job)));
-  if (job.error) prog.append(el('div', 'job-error', `${job.error.code}: ${job.error.message}`));
+  const text = el('div', 'progress-text');
+  const error = el('div', 'job-error');
+  prog.append(bar, text, error);
   const lossCell = el('td');
   const chart = el('canvas', 'sparkline');
   lossCell.append(chart);
-  const created = el('td', 'muted', new Date(job.created_at).toLocaleString());
   const actions = el('td');
-  actions.append(actionButton(job));
-  tr.append(idCell, status, prog, lossCell, created, actions);
-  return { tr, chart };
+  tr.append(idCell, status, prog, lossCell, el('td', 'muted', new Date(job.created_at).toLocaleString()), actions);
+  return { tr, status, bar, text, error, chart, actions, kind: null };
+}
+
+function updateRow(row, job) {
+  row.tr.dataset.status = job.status;
+  row.status.className = `status status-${job.status}`;
+  row.status.textContent = job.status;
+  row.bar.value = job.progress.fraction || 0;
+  row.text.textContent = progressText(job);
+  row.error.textContent = job.error ? `${job.error.code}: ${job.error.message}` : '';
+  const kind = actionKind(job);
+  if (kind !== row.kind) {
+    row.actions.replaceChildren(actionButton(job, kind));
+    row.kind = kind;
+  }
+  drawLossChart(row.chart, recordLoss(job), job.progress.iterations);
 }
 
 async function refresh() {
@@ -130,9 +147,14 @@ async function refresh() {
     const page = await apiJson('/v1/jobs?limit=50');
     if (seq !== refreshSeq) return;
     clearProblem(jobsError);
-    const rows = page.items.map((job) => ({ job, ...jobRow(job) }));
-    tbody.replaceChildren(...rows.map((r) => r.tr));
-    for (const { job, chart } of rows) drawLossChart(chart, recordLoss(job), job.progress.iterations);
+    const ids = page.items.map((job) => job.id);
+    for (const job of page.items) {
+      if (!rows.has(job.id)) rows.set(job.id, makeRow(job));
+      updateRow(rows.get(job.id), job);
+    }
+    for (const id of [...rows.keys()]) if (!ids.includes(id)) rows.delete(id);
+    const shown = [...tbody.children].map((tr) => tr.dataset.jobId);
+    if (shown.join() !== ids.join()) tbody.replaceChildren(...ids.map((id) => rows.get(id).tr));
     document.getElementById('jobs-empty').hidden = page.items.length > 0;
     active = page.items.some((job) => !FINISHED.has(job.status));
   } catch (err) {
