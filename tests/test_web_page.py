@@ -159,7 +159,14 @@ def test_bad_upload_shows_the_problem_title_and_detail(page, service, tmp_path):
     with service.client() as c:
         want = servicekit.assert_problem(servicekit.submit(c, bad, servicekit.SMOKE))
     before = page.locator("#jobs tbody tr").count()
-    page.set_input_files("#file", str(bad))
+    # dropped on the form, as a person would (a drop event carrying the file)
+    page.evaluate("""([name, text]) => {
+        const dt = new DataTransfer();
+        dt.items.add(new File([text], name));
+        document.getElementById('upload-section').dispatchEvent(
+          new DragEvent('drop', {dataTransfer: dt, bubbles: true, cancelable: true}));
+      }""", [bad.name, bad.read_text()])
+    assert page.inner_text("#upload-state") == f"ready: {bad.name}"
     page.select_option("#preset", "smoke")
     page.fill("#labels", "1-x")  # refused by the page itself, with what to type instead
     page.click("#submit")

@@ -164,6 +164,24 @@ async function refresh() {
   if (seq === refreshSeq) pollTimer = setTimeout(refresh, active ? ACTIVE_POLL_MS : IDLE_POLL_MS);
 }
 
+/** Dropping a file on the upload section puts it in the form (anywhere else it is ignored, so the
+ * browser does not navigate away to the dropped file). */
+function initDrop() {
+  const zone = document.getElementById('upload-section');
+  const input = document.getElementById('file');
+  for (const type of ['dragover', 'drop']) window.addEventListener(type, (ev) => ev.preventDefault());
+  zone.addEventListener('dragover', () => zone.classList.add('dragging'));
+  zone.addEventListener('dragleave', () => zone.classList.remove('dragging'));
+  zone.addEventListener('drop', (ev) => {
+    zone.classList.remove('dragging');
+    const { files } = ev.dataTransfer || {};
+    if (!files || !files.length) return;
+    input.files = files;
+    document.getElementById('upload-state').textContent = `ready: ${files[0].name}`;
+  });
+}
+
 document.getElementById('upload-form').addEventListener('submit', submit);
+initDrop();
 initKeyBar(refresh);
 refresh();
