@@ -48,7 +48,8 @@ COPY web ./web
 # scripts/build_web.py copies the files the page loads into app/web/static/vendor/ (package data)
 RUN --mount=type=bind,from=web,source=/web/node_modules,target=/tmp/node_modules \
     python3 scripts/build_web.py --node-modules /tmp/node_modules && python3 scripts/build_web.py --check
-RUN pip install ".[postgres]" \
+# the Postgres driver (psycopg2-binary) and alembic are main dependencies; `ribpull-db upgrade` migrates
+RUN pip install . \
     && useradd --system --uid 10001 --home-dir /data ribpull \
     && mkdir -p /data && chown ribpull /data
 

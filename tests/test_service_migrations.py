@@ -278,3 +278,19 @@ def test_make_run_upgrades_its_own_sqlite(tmp_path, monkeypatch):
     with pytest.raises(migrate.SchemaError, match="ribpull-db upgrade"):
         serve.prepare_database(Settings(storage_dir=storage, database_url=external))
     assert _revision(external) == migrate.BASELINE
+
+
+def test_compose_migrates_before_api_and_workers():
+    """docker-compose.yml: a `migrate` service runs `ribpull-db upgrade` (a console script of the
+    package) against the same database, and every api/worker service waits for it to succeed."""
+    import tomllib
+    import yaml
+
+    svcs = yaml.safe_load((ROOT / "docker-compose.yml").read_text())["services"]
+    scripts = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]
+    assert scripts["ribpull-db"] == "app.migrate:main"
+    assert svcs["migrate"]["command"] == ["ribpull-db", "upgrade"]
+    url = svcs["migrate"]["environment"]["RIBPULL_DATABASE_URL"]
+    for name in [n for n in svcs if n == "api" or n.startswith("worker")]:
+        assert svcs[name]["depends_on"]["migrate"]["condition"] == "service_completed_successfully", name
+        assert svcs[name]["environment"]["RIBPULL_DATABASE_URL"] == url, name
