@@ -156,6 +156,10 @@ def test_baseline_database_with_jobs_upgrades_to_head_and_loses_none(db_url, tmp
     out = _cli("check", url=db_url, storage=tmp_path)
     assert out.returncode == 1 and "ribpull-db upgrade" in out.stderr, out
 
+    if db_url.startswith("postgresql"):  # what a DBA would review first
+        out = _cli("upgrade", "--sql", url=db_url, storage=tmp_path)
+        assert out.returncode == 0 and "ALTER TABLE jobs ADD COLUMN artifacts_ref" in out.stdout, out
+        assert _revision(db_url) == migrate.BASELINE  # printed, not run
     out = _cli("upgrade", url=db_url, storage=tmp_path)  # the real CLI (`make migrate`)
     assert out.returncode == 0, out.stderr
     assert f"{migrate.BASELINE} -> {migrate.head_revision()}" in out.stdout, out.stdout
