@@ -85,6 +85,7 @@ def _maintenance_loop() -> None:
     from app.db import make_sessionmaker
     from app.jobs import celery_client, enqueue
     from app.state import sweep, worker_id
+    from app.storage import artifact_store
 
     key = WORKER_KEY_PREFIX + worker_id()
     r = redis.Redis.from_url(settings.redis_url, socket_timeout=5, socket_connect_timeout=5)
@@ -103,7 +104,9 @@ def _maintenance_loop() -> None:
             next_beat = now + beat
         if now >= next_sweep:
             try:
-                sweep(sm, settings, lambda job_id: enqueue(client, TASK_RUN_JOB, job_id))
+                ended = sweep(sm, settings, lambda job_id: enqueue(client, TASK_RUN_JOB, job_id))
+                for job_id in ended["failed"] + ended["canceled"]:  # the dead attempt's files
+                    artifact_store(settings).keep_only(job_id, None)
             except Exception as exc:  # noqa: BLE001
                 log.warning("stale-job sweep failed: %s", exc)
             next_sweep = now + settings.sweep_interval_s

@@ -197,7 +197,8 @@ def execute_job(job_id: str, settings: Settings) -> str:
     claim = state.claim_job(sm, settings, job_id)
     if claim.token is None:
         log.info("job %s: not run (%s)", job_id, claim.outcome)
-        if claim.outcome in ("canceled", "failed"):
+        if claim.outcome in ("canceled", "failed"):  # this delivery ended the job: nothing can win now
+            artifact_store(settings).keep_only(job_id, None)
             notify(job_id, settings)
         return claim.outcome
     token = claim.token
