@@ -60,7 +60,8 @@ def chromium_executable() -> str | None:
 
 
 @pytest.fixture(scope="module")
-def browser():
+def launch_chromium():
+    """launch(extra_args=()) -> a headless Debian chromium under Playwright; all closed at the end."""
     try:
         from playwright.sync_api import sync_playwright
     except ImportError:
@@ -70,10 +71,21 @@ def browser():
         skip_loudly("no chromium here and apt-get could not install it (needs root and Debian's repositories)")
     if not build_web.is_current() and not build_web.build():
         skip_loudly("three.js could not be vendored (scripts/build_web.py: npm ci failed or npm is missing)")
+    launched = []
     with sync_playwright() as pw:
-        b = pw.chromium.launch(executable_path=exe, args=CHROMIUM_ARGS, headless=True)
-        yield b
-        b.close()
+        def launch(extra_args=()):
+            launched.append(pw.chromium.launch(executable_path=exe, args=[*CHROMIUM_ARGS, *extra_args],
+                                               headless=True))
+            return launched[-1]
+
+        yield launch
+        for b in launched:
+            b.close()
+
+
+@pytest.fixture(scope="module")
+def browser(launch_chromium):
+    return launch_chromium()
 
 
 @pytest.fixture
@@ -181,7 +193,7 @@ def test_bad_upload_shows_the_problem_title_and_detail(page, service, tmp_path):
     assert page.locator("#jobs tbody tr").count() == before  # nothing was queued
 
 
-def test_submit_watch_view_pick_download_cancel(page, service, sample_ply, tmp_path):
+def test_submit_watch_view_pick_download_cancel(page, launch_chromium, service, sample_ply, tmp_path):
     url = service.url
     enter_key(page, url)
 
@@ -280,6 +292,15 @@ def test_submit_watch_view_pick_download_cancel(page, service, sample_ply, tmp_p
     page.click("#cancel")
     assert wait_status(page, "document.body.dataset.status", FINISHED, timeout_s=30) == "canceled"
     assert "Job canceled" in page.inner_text("#job-problem")
+
+    # 8. a browser without WebGL: the page says the 3D view is unavailable; metrics and downloads stay
+    pg = launch_chromium(["--disable-3d-apis"]).new_page()
+    enter_key(pg, url)
+    pg.goto(f"{url}/jobs/{job_id}")
+    pg.wait_for_selector("#viewer .problem")
+    assert "3D view unavailable: this browser gives no WebGL context" in pg.inner_text("#viewer")
+    assert pg.locator("#downloads a").count() == len(job["artifacts"])
+    assert pg.locator("#surface-metrics tr").count() > 10
 
 
 def assert_not_blank(png: bytes) -> None:

@@ -90,8 +90,7 @@ function splitSkeleton(gltfScene, skeleton) {
     return r < 0 ? nRibs : r; // nRibs: the "other" group
   };
   const lines = Array.from({ length: nRibs + 1 }, () => []);
-  const tubes = Array.from({ length: nRibs + 1 }, () => []);
-  let tubePositions = null;
+  const tubes = []; // per triangle primitive: its position + normal attributes and each rib's triangles
   gltfScene.traverse((obj) => {
     if (obj.isLineSegments) { // LINES: non-indexed vertex pairs
       const xyz = worldPositions(obj);
@@ -100,14 +99,20 @@ function splitSkeleton(gltfScene, skeleton) {
       }
     } else if (obj.isMesh) {
       const xyz = worldPositions(obj);
-      tubePositions = new THREE.BufferAttribute(xyz, 3);
-      const index = obj.geometry.index ? obj.geometry.index.array : Array.from({ length: xyz.length / 3 }, (_, i) => i);
-      const vertexRib = new Int32Array(xyz.length / 3);
-      for (let i = 0; i < vertexRib.length; i += 1) vertexRib[i] = ribOfVertex(xyz, i);
-      for (let t = 0; t + 2 < index.length; t += 3) tubes[vertexRib[index[t]]].push(index[t], index[t + 1], index[t + 2]);
+      const count = xyz.length / 3;
+      const index = obj.geometry.index ? obj.geometry.index.array : Array.from({ length: count }, (_, i) => i);
+      const whole = new THREE.BufferGeometry(); // normals once, shared by the per-rib pieces
+      whole.setAttribute('position', new THREE.BufferAttribute(xyz, 3));
+      whole.setIndex(Array.from(index));
+      whole.computeVertexNormals();
+      const vertexRib = new Int32Array(count);
+      for (let i = 0; i < count; i += 1) vertexRib[i] = ribOfVertex(xyz, i);
+      const byRib = Array.from({ length: nRibs + 1 }, () => []);
+      for (let t = 0; t + 2 < index.length; t += 3) byRib[vertexRib[index[t]]].push(index[t], index[t + 1], index[t + 2]);
+      tubes.push({ position: whole.getAttribute('position'), normal: whole.getAttribute('normal'), byRib });
     }
   });
-  return { lines, tubes, tubePositions };
+  return { lines, tubes };
 }
 
 function ribColor(r, n) {
@@ -159,20 +164,20 @@ export async function createViewer(container, { meshGlb, skeletonGlb, skeleton, 
   const ribs = [];
   if (skeletonGlb && skeleton) {
     const skelGltf = await parseGlb(loader, skeletonGlb);
-    const { lines, tubes, tubePositions } = splitSkeleton(skelGltf.scene, skeleton);
+    const { lines, tubes } = splitSkeleton(skelGltf.scene, skeleton);
     const n = skeleton.components.length;
     for (let r = 0; r <= n; r += 1) {
       const comp = skeleton.components[r];
       const label = comp ? comp.label : UNLABELLED;
-      if (!comp && !lines[r].length && !tubes[r].length) continue;
+      if (!comp && !lines[r].length && !tubes.some((t) => t.byRib[r].length)) continue;
       const color = comp ? ribColor(r, n) : new THREE.Color(0x888888);
       const group = new THREE.Group();
       group.name = label;
-      if (tubes[r].length && tubePositions) {
+      for (const part of tubes.filter((t) => t.byRib[r].length)) {
         const g = new THREE.BufferGeometry();
-        g.setAttribute('position', tubePositions);
-        g.setIndex(tubes[r]);
-        g.computeVertexNormals();
+        g.setAttribute('position', part.position);
+        g.setAttribute('normal', part.normal);
+        g.setIndex(part.byRib[r]);
         const tube = new THREE.Mesh(g, new THREE.MeshStandardMaterial({ color, roughness: 0.5 }));
         tube.userData.rib = label;
         group.add(tube);
