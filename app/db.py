@@ -117,6 +117,13 @@ class Job(Base):
     webhook_attempts: Mapped[int] = mapped_column(Integer, default=0)
     webhook_error: Mapped[str | None] = mapped_column(Text, nullable=True)
 
+    # a job whose input is a DICOMweb series (revision 0003): {"dicomweb": {url, study_uid, series_uid}}
+    source: Mapped[dict[str, Any] | None] = mapped_column(JSON, nullable=True)
+    deliver_url: Mapped[str | None] = mapped_column(Text, nullable=True)  # STOW-RS base URL of the results
+    delivery_status: Mapped[str | None] = mapped_column(String(16), nullable=True)  # pending|delivered|failed
+    delivery_attempts: Mapped[int] = mapped_column(Integer, default=0)
+    delivery_error: Mapped[str | None] = mapped_column(Text, nullable=True)
+
 
 # ------------------------------------------------------------------------------------------------
 # engines and sessions

@@ -18,6 +18,7 @@ log = logging.getLogger("ribpull.api")
 #: Celery task names and queue (the worker registers these names; the API sends by name)
 TASK_RUN_JOB = "ribpull.run_job"
 TASK_WEBHOOK = "ribpull.deliver_webhook"
+TASK_DICOMWEB_DELIVER = "ribpull.deliver_dicomweb"
 QUEUE = "ribpull"
 WORKER_KEY_PREFIX = "ribpull:worker:"
 
@@ -101,6 +102,12 @@ def job_to_dict(job: Job, settings: Settings, base: str = "") -> dict:
             {"url": job.webhook_url, "status": job.webhook_status, "attempts": job.webhook_attempts or 0,
              "error": job.webhook_error}
             if job.webhook_url else None
+        ),
+        "source": job.source,
+        "delivery": (
+            {"url": job.deliver_url, "status": job.delivery_status, "attempts": job.delivery_attempts or 0,
+             "error": job.delivery_error}
+            if job.deliver_url else None
         ),
         "links": job_links(job, base),
     }

@@ -25,7 +25,7 @@ from .problems import install_handlers
 from .query import FieldCache
 from .routers import artifacts, health, jobs, query, web
 from .routers.artifacts import ARTIFACT_NAMES  # noqa: F401  (re-exported: == ribpull_core.pipeline.ARTIFACT_NAMES)
-from .schemas import JobParams, Problem
+from .schemas import DicomwebJobIn, JobParams, Problem
 from .settings import Settings, get_settings
 from .storage import ensure_dirs, rmtree_quiet
 
@@ -77,7 +77,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             routes=app.routes,
         )
         comps = schema.setdefault("components", {}).setdefault("schemas", {})
-        for model in (JobParams, Problem):
+        for model in (JobParams, DicomwebJobIn, Problem):
             js = model.model_json_schema(ref_template="#/components/schemas/{model}")
             for name, sub in js.pop("$defs", {}).items():
                 comps.setdefault(name, sub)

@@ -78,3 +78,30 @@ def webhook_target_problem(url: str, settings: Settings) -> str | None:
         if why:
             return why
     return None
+
+
+def _origin_and_path(url: str) -> tuple[str, str, int, str] | None:
+    try:
+        parts = urlsplit(url.strip())
+        port = parts.port or (443 if parts.scheme == "https" else 80)
+    except ValueError:
+        return None
+    if parts.scheme not in ("http", "https") or not parts.hostname:
+        return None
+    return parts.scheme, parts.hostname.lower(), port, parts.path.rstrip("/") + "/"
+
+
+def dicomweb_target_problem(url: str, settings: Settings) -> str | None:
+    """None when `url` lies under one of RIBPULL_DICOMWEB_URLS (same scheme, host and port, and a path
+    below the configured one); else the reason. A PACS usually sits on a private network, so unlike
+    webhooks the rule is an explicit list set by the operator, and nothing else is ever contacted."""
+    want = _origin_and_path(url)
+    if want is None:
+        return "it is not an absolute http(s) URL"
+    bases = [b for b in (_origin_and_path(u) for u in settings.dicomweb_urls.split(",") if u.strip()) if b]
+    if not bases:
+        return "this server has no DICOMweb servers configured (RIBPULL_DICOMWEB_URLS)"
+    for base in bases:
+        if want[:3] == base[:3] and want[3].startswith(base[3]):
+            return None
+    return "it is not one of this server's DICOMweb servers (RIBPULL_DICOMWEB_URLS)"

@@ -73,6 +73,75 @@ class JobParams(BaseModel):
         return sorted(set(v)) if v else v
 
 
+def _http_url(v: str, what: str) -> str:
+    if any(c.isspace() or ord(c) < 32 for c in v):
+        raise ValueError(f"{what} must not contain spaces or control characters")
+    try:
+        parts = urlsplit(v)
+        parts.port  # noqa: B018 - raises ValueError for a bad port
+    except ValueError as exc:
+        raise ValueError(f"{what} is not a valid URL: {exc}") from None
+    if parts.scheme not in ("http", "https") or not parts.hostname:
+        raise ValueError(f"{what} must be an absolute http:// or https:// URL")
+    return v
+
+
+#: a DICOM UID: dot-separated numbers, at most 64 characters
+DicomUID = Annotated[str, Field(pattern=r"^[0-9]+(\.[0-9]+)*$", max_length=64)]
+
+
+class DicomwebSeries(BaseModel):
+    """A series on a DICOMweb server: the job's input (a DICOM SEG series, retrieved by WADO-RS)."""
+
+    model_config = ConfigDict(extra="forbid", strict=True)
+
+    url: str = Field(..., max_length=2048, description="DICOMweb base URL, e.g. http://pacs:8042/dicom-web "
+                                                       "(must be under one of RIBPULL_DICOMWEB_URLS).")
+    study_uid: DicomUID = Field(..., description="StudyInstanceUID of the study holding the SEG.")
+    series_uid: DicomUID = Field(..., description="SeriesInstanceUID of the rib SEG series.")
+
+    @field_validator("url")
+    @classmethod
+    def _url(cls, v: str) -> str:
+        return _http_url(v, "url")
+
+
+class DicomwebTarget(BaseModel):
+    """Where the results are stored by STOW-RS (into the source's study)."""
+
+    model_config = ConfigDict(extra="forbid", strict=True)
+
+    url: str = Field(..., max_length=2048, description="DICOMweb base URL (under one of RIBPULL_DICOMWEB_URLS).")
+
+    @field_validator("url")
+    @classmethod
+    def _url(cls, v: str) -> str:
+        return _http_url(v, "url")
+
+
+class JobSource(BaseModel):
+    model_config = ConfigDict(extra="forbid", strict=True)
+
+    dicomweb: DicomwebSeries
+
+
+class JobDeliver(BaseModel):
+    model_config = ConfigDict(extra="forbid", strict=True)
+
+    dicomweb: DicomwebTarget
+
+
+class DicomwebJobIn(BaseModel):
+    """A job that names its input on a PACS instead of uploading it (JSON body of POST /v1/jobs)."""
+
+    model_config = ConfigDict(extra="forbid", strict=True)
+
+    source: JobSource
+    params: JobParams = Field(default_factory=JobParams)
+    deliver: JobDeliver | None = Field(None, description="Store seg.dcm, measurements_sr.dcm and mesh_stl.dcm "
+                                                         "into the source's study when the job succeeds.")
+
+
 class Progress(BaseModel):
     stage: str | None = Field(None, description="load|fit|mesh|sdf|skeleton|metrics|export|done")
     fraction: float = Field(0.0, description="Overall progress in [0, 1].")
@@ -109,6 +178,13 @@ class WebhookInfo(BaseModel):
     error: str | None = None
 
 
+class DeliveryInfo(BaseModel):
+    url: str
+    status: str | None = Field(None, description="pending | delivered | failed")
+    attempts: int = 0
+    error: str | None = Field(None, description="`<code>: <message>` of the last failed attempt")
+
+
 class JobOut(BaseModel):
     id: str
     status: Status
@@ -126,6 +202,8 @@ class JobOut(BaseModel):
     artifacts_deleted: bool = Field(False, description="True after DELETE removed a finished job's files.")
     metrics: dict[str, Any] | None = None
     webhook: WebhookInfo | None = None
+    source: dict[str, Any] | None = Field(None, description="The DICOMweb series a job named as its input.")
+    delivery: DeliveryInfo | None = Field(None, description="STOW-RS delivery of the DICOM results.")
     links: dict[str, str] = Field(default_factory=dict)
 
 

@@ -106,6 +106,16 @@ class Settings(BaseSettings):
         "", description="Comma-separated private networks/hosts (CIDR or IP) webhooks may target; loopback, "
                         "link-local and the service's own ports are always refused.")
 
+    # --- DICOMweb (PACS) sources and delivery --------------------------------------------------------
+    dicomweb_urls: str = Field(
+        "", description="Comma-separated DICOMweb base URLs (e.g. http://pacs:8042/dicom-web) that jobs may name as "
+                        "source or delivery target; a job's URL must start with one of them. Empty = no DICOMweb jobs.")
+    dicomweb_authorization: str = Field(
+        "", description="Authorization header value sent to the PACS (e.g. 'Basic dXNlcjpwdw=='); never stored in jobs.")
+    dicomweb_timeout_s: float = Field(60.0, gt=0, description="Timeout of one WADO-RS / QIDO-RS / STOW-RS request.")
+    dicomweb_max_attempts: int = Field(5, ge=1, description="STOW-RS delivery attempts before the delivery fails.")
+    dicomweb_backoff_s: float = Field(5.0, ge=0, description="First delivery retry delay; doubles each retry.")
+
     @field_validator("device")
     @classmethod
     def _device(cls, v: str) -> str:

@@ -38,6 +38,10 @@ class _InputMissing(Exception):
     pass
 
 
+class _SourceFailed(Exception):
+    """The job's DICOMweb source could not be fetched (worker.dicomweb.DicomwebError inside)."""
+
+
 class Reporter:
     """progress -> throttled DB writes; should_cancel -> cancel flag / timeout / lost claim;
     plus a heartbeat thread so a long stage without progress calls still looks alive."""
@@ -212,6 +216,8 @@ def execute_job(job_id: str, settings: Settings) -> str:
     outcome = "failed"
     try:
         inp = input_file(settings, job_id)
+        if inp is None and job.source:  # a DICOMweb job: its SEG is fetched from the PACS once
+            inp = _fetch_source(job, settings)
         if inp is None:
             raise _InputMissing()
         work.mkdir(parents=True)
@@ -253,6 +259,10 @@ def execute_job(job_id: str, settings: Settings) -> str:
                 store.discard(job_id, token)
                 log.warning("job %s: finished but another attempt owns it now; outputs discarded", job_id)
             outcome = "succeeded" if ok else "lost"
+    except _SourceFailed as exc:
+        err = exc.args[0]
+        state.finish(sm, job_id, token, "failed", error_code=err.code, error_message=scrub_paths(err.message)[:2000])
+        outcome = "failed"
     except _InputMissing:
         state.finish(sm, job_id, token, "failed", error_code="input_missing",
                      error_message="the uploaded input is no longer on the server; submit the job again")
@@ -272,9 +282,79 @@ def execute_job(job_id: str, settings: Settings) -> str:
             shutil.rmtree(work, ignore_errors=True)
         _collect_leftovers(sm, store, job_id, token)
     log.info("job %s: %s", job_id, outcome)
+    if outcome == "succeeded":
+        deliver_results(job_id, settings)
     if outcome in ("succeeded", "failed", "canceled"):
         notify(job_id, settings)
     return outcome
+
+
+def _fetch_source(job: Job, settings: Settings):
+    """WADO-RS the job's SEG series into its input directory; a PACS problem -> _SourceFailed."""
+    from app.storage import input_dir
+
+    from .dicomweb import DicomwebError, fetch_seg
+
+    try:
+        return fetch_seg(job.source, settings, input_dir(settings, job.id))
+    except DicomwebError as exc:
+        log.warning("job %s: DICOMweb source failed: %s: %s", job.id, exc.code, exc.message)
+        raise _SourceFailed(exc) from None
+
+
+def deliver_results(job_id: str, settings: Settings) -> None:
+    """First STOW-RS attempt of a finished DICOMweb job inline; retries go through the queue. Never raises."""
+    try:
+        attempt_delivery(job_id, settings, 1)
+    except Exception as exc:  # noqa: BLE001
+        log.warning("job %s: DICOMweb delivery scheduling failed: %s", job_id, exc)
+
+
+def attempt_delivery(job_id: str, settings: Settings, attempt: int) -> str:
+    """Store a succeeded job's DICOM results into its source study (STOW-RS), from its artifacts: a
+    failed delivery is retried with back-off (RIBPULL_DICOMWEB_BACKOFF_S doubling, up to
+    RIBPULL_DICOMWEB_MAX_ATTEMPTS) and never refits. Returns delivered | retrying | failed | nothing."""
+    from sqlalchemy import update
+
+    from app.jobs import TASK_DICOMWEB_DELIVER
+    from app.storage import artifact_store
+
+    from .dicomweb import DicomwebError, store_results
+
+    sm = make_sessionmaker(settings)
+    with sm() as s:
+        job = get_job(s, job_id)
+    if (job is None or not job.deliver_url or job.delivery_status in ("delivered", "failed")
+            or job.status != "succeeded" or job.artifacts_deleted):
+        return "nothing"
+    retry = False
+    try:
+        adir = artifact_store(settings).local_dir(job.id, job.artifacts_ref)
+        uids = store_results(job.deliver_url, job.source["dicomweb"]["study_uid"], adir, settings)
+        err = None
+    except DicomwebError as exc:
+        err, retry = f"{exc.code}: {exc.message}"[:2000], exc.retryable
+    final_failure = err is not None and (not retry or attempt >= settings.dicomweb_max_attempts)
+    vals = {"delivery_attempts": Job.delivery_attempts + 1, "delivery_error": err}
+    if err is None:
+        vals["delivery_status"] = "delivered"
+    elif final_failure:
+        vals["delivery_status"] = "failed"
+    with sm() as s:
+        s.execute(update(Job).where(Job.id == job_id).values(**vals))
+        s.commit()
+    if err is None:
+        log.info("job %s: results stored into study %s (attempt %d): %s", job_id,
+                 job.source["dicomweb"]["study_uid"], attempt, ", ".join(uids))
+        return "delivered"
+    if final_failure:
+        log.warning("job %s: DICOMweb delivery failed for good after %d attempts: %s", job_id, attempt, err)
+        return "failed"
+    delay = min(3600.0, settings.dicomweb_backoff_s * 2 ** (attempt - 1))
+    log.info("job %s: DICOMweb delivery attempt %d failed (%s); retry in %.1f s", job_id, attempt, err, delay)
+    celery_app.send_task(TASK_DICOMWEB_DELIVER, args=[job_id, attempt + 1], countdown=delay,
+                         queue=celery_app.conf.task_default_queue)
+    return "retrying"
 
 
 def _collect_leftovers(sm, store, job_id: str, token: str) -> None:
@@ -346,4 +426,13 @@ def deliver_webhook(job_id: str, attempt: int = 1) -> str:
         return "error"
 
 
-__all__ = ["deliver_webhook", "enqueue", "execute_job", "run_job"]
+@celery_app.task(name="ribpull.deliver_dicomweb", ignore_result=True, acks_late=True)
+def deliver_dicomweb(job_id: str, attempt: int = 1) -> str:
+    try:
+        return attempt_delivery(str(job_id), settings, int(attempt))
+    except Exception as exc:  # noqa: BLE001
+        log.warning("job %s: DICOMweb delivery task error: %s", job_id, exc)
+        return "error"
+
+
+__all__ = ["deliver_dicomweb", "deliver_webhook", "enqueue", "execute_job", "run_job"]

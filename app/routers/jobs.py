@@ -1,4 +1,5 @@
-"""POST /v1/jobs (streaming multipart upload, validated before anything is queued), GET /v1/jobs,
+"""POST /v1/jobs (streaming multipart upload, validated before anything is queued; or a JSON body that
+names a DICOMweb series, fetched by the worker), GET /v1/jobs,
 GET /v1/jobs/{id}, DELETE /v1/jobs/{id}. Status changes go through app/state.py."""
 
 from __future__ import annotations
@@ -21,9 +22,9 @@ from .. import state
 from ..db import Job, utcnow
 from ..deps import CeleryDep, FieldCacheDep, JobDep, JobIdPath, OwnerDep, SessionsDep, SettingsDep, read_job
 from ..jobs import TASK_RUN_JOB, TASK_WEBHOOK, decode_cursor, encode_cursor, enqueue, job_to_dict
-from ..netpolicy import webhook_target_problem
+from ..netpolicy import dicomweb_target_problem, webhook_target_problem
 from ..problems import INPUT_ERROR_STATUS, ProblemError, validation_problem
-from ..schemas import JobList, JobOut, JobParams, Status
+from ..schemas import DicomwebJobIn, JobList, JobOut, JobParams, Status
 from ..settings import Settings
 from ..storage import artifact_store, input_dir, job_dir, rmtree_quiet
 from ..upload import receive_upload
@@ -53,7 +54,8 @@ UPLOAD_BODY = {
                     },
                 },
                 "encoding": {"params": {"contentType": "application/json"}},
-            }
+            },
+            "application/json": {"schema": {"$ref": "#/components/schemas/DicomwebJobIn"}},
         },
     }
 }
@@ -67,7 +69,7 @@ def _base_url() -> str:
     "",
     status_code=202,
     response_model=JobOut,
-    summary="Submit a job (multipart: `file` + optional JSON `params`)",
+    summary="Submit a job (multipart: `file` + optional JSON `params`; or a JSON body naming a DICOMweb SEG series)",
     openapi_extra=UPLOAD_BODY,
     responses={
         200: {"description": "Idempotent replay: the job created earlier with this Idempotency-Key",
@@ -89,6 +91,8 @@ async def create_job(
                                            "same key + a different payload is 422."),
     ] = None,
 ):
+    if request.headers.get("content-type", "").split(";")[0].strip().lower() == "application/json":
+        return await _create_dicomweb_job(request, response, owner, settings, sm, celery, idempotency_key)
     up = await receive_upload(request, settings)
     moved = False
     try:
@@ -123,31 +127,75 @@ async def create_job(
             idempotency_key=key, fingerprint=fingerprint, created_at=now, updated_at=now,
             webhook_url=params.webhook_url, webhook_status="pending" if params.webhook_url else None,
         )
-        try:
-            job = await run_in_threadpool(state.insert_queued, sm, job)
-        except IntegrityError:  # the same Idempotency-Key raced in: answer like a replay
-            rmtree_quiet(jdir)
-            existing = await run_in_threadpool(_find_idem, sm, owner, key)
-            if existing is None:
-                raise
-            return _replay(existing, fingerprint, response, settings)
-        try:
-            await run_in_threadpool(enqueue, celery, TASK_RUN_JOB, job_id)
-        except Exception as exc:  # noqa: BLE001
-            log.error("could not enqueue job %s: %s", job_id, exc)
-            await run_in_threadpool(state.fail_unqueued, sm, job_id)
-            rmtree_quiet(input_dir(settings, job_id))
-            raise ProblemError(503, "queue_unavailable",
-                               "the job queue (Redis) is not reachable; the job was not started, try again",
-                               headers={"Retry-After": "10"}) from None
-        response.headers["Location"] = f"/v1/jobs/{job_id}"
-        response.status_code = 202
-        return job_to_dict(job, settings, _base_url())
+        return await _queue_job(job, jdir, fingerprint, response, owner, settings, sm, celery)
     finally:
         if not moved:
             up.cleanup()
         else:
             rmtree_quiet(up.tmpdir)
+
+
+async def _queue_job(job: Job, jdir, fingerprint: str, response: Response, owner: str, settings: Settings, sm,
+                     celery):
+    """Insert the queued row and send the task; 202 + Location (or the replay of a raced Idempotency-Key)."""
+    try:
+        job = await run_in_threadpool(state.insert_queued, sm, job)
+    except IntegrityError:  # the same Idempotency-Key raced in: answer like a replay
+        rmtree_quiet(jdir)
+        existing = await run_in_threadpool(_find_idem, sm, owner, job.idempotency_key)
+        if existing is None:
+            raise
+        return _replay(existing, fingerprint, response, settings)
+    try:
+        await run_in_threadpool(enqueue, celery, TASK_RUN_JOB, job.id)
+    except Exception as exc:  # noqa: BLE001
+        log.error("could not enqueue job %s: %s", job.id, exc)
+        await run_in_threadpool(state.fail_unqueued, sm, job.id)
+        rmtree_quiet(input_dir(settings, job.id))
+        raise ProblemError(503, "queue_unavailable",
+                           "the job queue (Redis) is not reachable; the job was not started, try again",
+                           headers={"Retry-After": "10"}) from None
+    response.headers["Location"] = f"/v1/jobs/{job.id}"
+    response.status_code = 202
+    return job_to_dict(job, settings, _base_url())
+
+
+async def _create_dicomweb_job(request: Request, response: Response, owner: str, settings: Settings, sm, celery,
+                               idempotency_key: str | None):
+    """POST /v1/jobs with a JSON body: the input is a SEG series on a PACS, fetched by the worker."""
+    try:
+        body = DicomwebJobIn.model_validate_json(await request.body())
+    except ValidationError as exc:
+        raise validation_problem(list(exc.errors()), "body") from None
+    await _check_limits(body.params, settings)
+    targets = [("source.dicomweb.url", body.source.dicomweb.url)]
+    if body.deliver is not None:
+        targets.append(("deliver.dicomweb.url", body.deliver.dicomweb.url))
+    for where, url in targets:
+        why = dicomweb_target_problem(url, settings)
+        if why:
+            raise ProblemError(422, "dicomweb_refused", f"{where} is not an allowed DICOMweb server: {why}")
+    stored = body.params.model_dump()
+    stored["preset"] = body.params.preset or settings.default_preset
+    source = body.source.model_dump()
+    deliver_url = body.deliver.dicomweb.url if body.deliver is not None else None
+    fingerprint = hashlib.sha256(
+        json.dumps({"source": source, "deliver": deliver_url, "params": stored}, sort_keys=True).encode()
+    ).hexdigest()
+    key = idempotency_key.strip() if idempotency_key else None
+    if key:
+        existing = await run_in_threadpool(_find_idem, sm, owner, key)
+        if existing is not None:
+            return _replay(existing, fingerprint, response, settings)
+    job_id = uuid.uuid4().hex
+    now = utcnow()
+    job = Job(
+        id=job_id, owner=owner, status="queued", params=stored, input_name=body.source.dicomweb.series_uid,
+        input_format="dicomweb", idempotency_key=key, fingerprint=fingerprint, created_at=now, updated_at=now,
+        webhook_url=body.params.webhook_url, webhook_status="pending" if body.params.webhook_url else None,
+        source=source, deliver_url=deliver_url, delivery_status="pending" if deliver_url else None,
+    )
+    return await _queue_job(job, job_dir(settings, job_id), fingerprint, response, owner, settings, sm, celery)
 
 
 def _parse_params(raw: str | None) -> JobParams:

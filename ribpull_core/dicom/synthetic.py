@@ -15,9 +15,11 @@ import numpy as np
 from pydicom.dataset import Dataset, FileMetaDataset
 from pydicom.uid import ExplicitVRLittleEndian, generate_uid
 
-from . import CT_SOP_CLASS_UID, LPS_FROM_RAS, MANUFACTURER, MODEL_NAME, SOFTWARE_VERSION
+from . import CT_SOP_CLASS_UID, LPS_FROM_RAS, MODEL_NAME, SOFTWARE_VERSION
 from .ribs import CATEGORY_CODE, RIB_CODE, rib_side_number
 
+#: not "RibPull": these stand for a scanner's and a segmenter's objects, not RibPull's results
+MANUFACTURER = "RibPull synthetic study"
 BONE_HU = 700
 TISSUE_HU = 40
 
