@@ -61,7 +61,9 @@ async function submit(ev) {
   try {
     const job = await apiJson('/v1/jobs', { method: 'POST', body });
     state.textContent = `submitted job ${job.id.slice(0, 8)}`;
-    document.getElementById('upload-form').reset();
+    // clear the file (preset, labels and units stay for the next run), unless another was chosen meanwhile
+    const input = document.getElementById('file');
+    if (input.files[0] === file) input.value = '';
     await refresh();
   } catch (err) {
     state.textContent = '';
@@ -136,7 +138,7 @@ function updateRow(row, job) {
     row.actions.replaceChildren(actionButton(job, kind));
     row.kind = kind;
   }
-  drawLossChart(row.chart, recordLoss(job), job.progress.iterations);
+  drawLossChart(row.chart, recordLoss(job), job.progress.iterations, { compact: true });
 }
 
 async function refresh() {
