@@ -2,10 +2,11 @@
 
 The flows are test_service_e2e.py's own tests, imported and collected here again with `service`
 overridden by a stack (tests/servicekit.py) whose RIBPULL_DATABASE_URL is a fresh database in a
-throw-away cluster (tests/pgcluster.py): submit, poll, download, query, signed webhook, idempotency,
-key isolation, cancel running and queued jobs, API restart, pagination, delete. The worker-kill flow
-runs on Postgres with several workers in test_service_scaleout.py. The tests below then look at the
-rows in Postgres itself.
+throw-away cluster (tests/pgcluster.py): submit, poll, download, signed webhook, idempotency, key
+isolation, cancel running and queued jobs, API restart, pagination, delete. The worker-kill flow runs
+on Postgres with several workers in test_service_scaleout.py; the field query (files only, the
+database is not involved beyond the job lookup) is not repeated. test_jobs_live_in_postgres then looks
+at the rows in Postgres itself.
 """
 
 from __future__ import annotations
@@ -22,7 +23,6 @@ pytestmark = pytest.mark.service
 # test_service_e2e.py's flows, in its order (they share its STATE: the smoke job comes first)
 receiver = e2e.receiver
 test_smoke_job_end_to_end = e2e.test_smoke_job_end_to_end
-test_query_field = e2e.test_query_field
 test_idempotency_key = e2e.test_idempotency_key
 test_keys_isolate_jobs = e2e.test_keys_isolate_jobs
 test_webhook_signed_and_retried = e2e.test_webhook_signed_and_retried
