@@ -211,8 +211,8 @@ def ensure_schema(engine: Engine) -> None:
         state = schema_state(conn)
     if state.status == "current":
         return
-    if state.status != "empty":
-        raise SchemaError(state.problem(url))
+    # judge anything else under the lock: another process may be creating the schema right now, and
+    # SQLite's DDL is not transactional, so outside the lock a half-built one looks "legacy"
     with _migration_lock(engine) as conn:
         state = schema_state(conn)  # another process may have created it while we waited
         if state.status == "empty":

@@ -104,9 +104,12 @@ class Stack:
         self.env = env
 
     # --- processes ---------------------------------------------------------------------------------
-    def start(self) -> Stack:
+    def start(self, worker_dirs: list[Path] | None = None) -> Stack:
+        """Redis, one worker per entry of `worker_dirs` (its working directory; default: one worker in
+        the repository root), the API; returns once /readyz is 200."""
         self.redis = launcher.start_redis(self.redis_port, self.root / "redis", log_path=self.logs / "redis.log")
-        self.start_worker()
+        for workdir in worker_dirs or [None]:
+            self.start_worker(workdir)
         self.start_api()
         self.wait_ready()
         return self
