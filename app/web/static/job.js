@@ -46,13 +46,14 @@ function showSummary(job) {
 function showProgress(job) {
   const section = document.getElementById('progress-section');
   const running = !FINISHED.has(job.status);
-  section.hidden = !running && !recordLoss(job).length;
+  const history = recordLoss(job);
+  section.hidden = !running && !history.length;
   document.getElementById('job-progress').value = job.progress.fraction || 0;
   document.getElementById('progress-text').textContent = progressText(job) || job.status;
   const cancel = document.getElementById('cancel');
   cancel.hidden = !running;
   cancel.disabled = job.cancel_requested;
-  drawLossChart(document.getElementById('loss-chart'), recordLoss(job), job.progress.iterations);
+  drawLossChart(document.getElementById('loss-chart'), history, job.progress.iterations);
 }
 
 function showOutcome(job) {
