@@ -35,6 +35,7 @@ from ..losses import (
     sign_margin_loss,
 )
 from ..pointcloud import sampling_gap
+from ..quadrics import fit_local_quadrics, project_onto_quadrics
 from .base import FittedField, KnownOccupancy, Method, knn_sigma, sample_pull_queries
 from .training import ScheduleConfig
 
@@ -82,6 +83,10 @@ class QueryConfig:
     outlier_gap_factor: input points whose distance to their 8th neighbour exceeds this multiple of
     the median such distance are dropped before fitting (isolated samples: scanner or segmentation
     outliers); 0 keeps every point.
+    targets: what each query is pulled to: "nearest" (the paper: its nearest input point) or
+    "quadric" (that point's local quadric patch over target_knn neighbours, `ribpull_core.quadrics`:
+    a smooth surface between the samples that averages their noise); a projection that moves more
+    than target_max_shift sampling gaps from the nearest point falls back to the point.
     """
 
     n_queries: int = 1_000_000
@@ -94,6 +99,9 @@ class QueryConfig:
     sampling_weight: float = 10.0
     max_input_points: int = 200_000
     outlier_gap_factor: float = 0.0
+    targets: str = "nearest"
+    target_knn: int = 20
+    target_max_shift: float = 1.0
 
 
 @dataclass
@@ -378,9 +386,8 @@ class SparseOcc(Method):
         self.points = pts
         queries, nearest = self._queries(pts, rng)
         self.q_all = torch.from_numpy(queries).to(device)
-        pts_t = torch.from_numpy(pts.astype(np.float32)).to(device)
-        self.target_all = pts_t[torch.from_numpy(nearest).to(device)]
-        self.pts_t = pts_t
+        self.target_all = torch.from_numpy(self._pull_targets(pts, queries, nearest)).to(device)
+        self.pts_t = torch.from_numpy(pts.astype(np.float32)).to(device)
         s = cfg.sign
         self.free = self.near = None
         if s.free_space_weight > 0 or s.near_surface_weight > 0:
@@ -484,6 +491,18 @@ class SparseOcc(Method):
             u = fitted.evaluate(self.known.cpu().numpy())["U"]
             return classification_level(u, self.known_inside.cpu().numpy())
         return float(np.median(fitted.evaluate(self.points.astype(np.float32))["U"]))
+
+    def _pull_targets(self, pts: np.ndarray, queries: np.ndarray, nearest: np.ndarray) -> np.ndarray:
+        """(Q, 3) float32 eq. 1 targets: the nearest input points, or their local quadric patches
+        under the queries (`queries.targets`)."""
+        qc = self.config.queries
+        if qc.targets == "nearest":
+            return pts[nearest].astype(np.float32)
+        if qc.targets != "quadric":
+            raise ValueError(f"unknown pull targets {qc.targets!r}: 'nearest' or 'quadric'")
+        patches = fit_local_quadrics(pts, qc.target_knn)
+        return project_onto_quadrics(queries, nearest, patches, fallback=pts[nearest],
+                                     max_shift=qc.target_max_shift * sampling_gap(pts)).astype(np.float32)
 
     def _queries(self, pts: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
         """Neural-Pull queries, split evenly over `queries.scales`."""

@@ -1,0 +1,87 @@
+"""Local quadric surface patches of a point cloud (second-order moving least squares).
+
+Every input point gets a height field w(u, v) = a0 + a1 u + a2 v + a3 u^2 + a4 uv + a5 v^2 fitted by
+Gaussian-weighted least squares to its k nearest neighbours, in the frame (e1, e2, n) of their
+principal axes (n: the least-variance axis), centred on their centroid. Projecting a query onto
+the patch of its nearest input point gives a point of a smooth local surface instead of a discrete
+sample: as eq. 1's pull targets these lie between the samples (the field is not pulled into bumps
+one sampling gap apart) and average the sample noise over k neighbours.
+
+Units are those of the points (RibPull calls this in the unit frame).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+
+@dataclass
+class LocalQuadrics:
+    """Per-point patches. centre (N, 3): neighbourhood centroid; frame (N, 3, 3): rows e1, e2, n;
+    coef (N, 6): height-field coefficients (a0..a5 above); radius (N,): distance to the k-th
+    neighbour (the patch's extent)."""
+
+    centre: np.ndarray
+    frame: np.ndarray
+    coef: np.ndarray
+    radius: np.ndarray
+
+
+def _monomials(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """(...) u, v -> (..., 6) the height field's basis 1, u, v, u^2, uv, v^2."""
+    return np.stack([np.ones_like(u), u, v, u * u, u * v, v * v], axis=-1)
+
+
+def fit_local_quadrics(points: np.ndarray, k: int = 20, chunk: int = 25_000) -> LocalQuadrics:
+    """(N, 3) points -> one quadric patch per point over its k nearest neighbours (itself included).
+
+    Weights exp(-(u^2 + v^2) / r^2), r the distance to the k-th neighbour, favour the near samples;
+    a tiny ridge keeps degenerate neighbourhoods (collinear samples) solvable. `chunk` points are
+    fitted at a time to bound memory (~chunk x k x 36 floats)."""
+    pts = np.asarray(points, dtype=np.float64)
+    n = len(pts)
+    k = int(min(max(k, 6), n))
+    dist, nn = cKDTree(pts).query(pts, k=k, workers=-1)
+    centre = np.empty((n, 3))
+    frame = np.empty((n, 3, 3))
+    coef = np.empty((n, 6))
+    for s in range(0, n, chunk):
+        sl = slice(s, min(s + chunk, n))
+        nb = pts[nn[sl]]  # (c, k, 3)
+        c = nb.mean(axis=1)
+        x = nb - c[:, None]
+        _, vecs = np.linalg.eigh(np.einsum("nki,nkj->nij", x, x))  # ascending eigenvalues
+        rot = np.transpose(vecs, (0, 2, 1))[:, ::-1]  # rows: largest (e1), middle (e2), least (n)
+        loc = np.einsum("nkj,nij->nki", x, rot)
+        u, v, w = loc[..., 0], loc[..., 1], loc[..., 2]
+        a = _monomials(u, v)
+        r2 = np.maximum(dist[sl, -1:] ** 2, 1e-18)
+        wt = np.exp(-(u * u + v * v) / r2)
+        ata = np.einsum("nk,nki,nkj->nij", wt, a, a) + 1e-10 * r2[:, :, None] * np.eye(6)
+        atb = np.einsum("nk,nki,nk->ni", wt, a, w)
+        coef[sl] = np.linalg.solve(ata, atb[..., None])[..., 0]
+        centre[sl], frame[sl] = c, rot
+    return LocalQuadrics(centre, frame, coef, dist[:, -1].copy())
+
+
+def project_onto_quadrics(queries: np.ndarray, nearest: np.ndarray, quadrics: LocalQuadrics,
+                          fallback: np.ndarray | None = None, max_shift: float | None = None) -> np.ndarray:
+    """(Q, 3) queries, (Q,) index of each query's nearest input point -> (Q, 3) the point of that
+    point's patch above or below the query (along the patch normal).
+
+    With `fallback` (Q, 3) (e.g. the nearest samples themselves) and `max_shift`, a projection that
+    lands farther than max_shift from its fallback point (a patch that does not describe the surface
+    there: two sheets in one neighbourhood, a sharp tip) is replaced by the fallback."""
+    q = np.asarray(queries, dtype=np.float64)
+    c, rot, a = quadrics.centre[nearest], quadrics.frame[nearest], quadrics.coef[nearest]
+    loc = np.einsum("nj,nij->ni", q - c, rot)
+    u, v = loc[:, 0], loc[:, 1]
+    w = np.einsum("ni,ni->n", _monomials(u, v), a)
+    out = c + u[:, None] * rot[:, 0] + v[:, None] * rot[:, 1] + w[:, None] * rot[:, 2]
+    if fallback is not None and max_shift is not None:
+        far = np.linalg.norm(out - fallback, axis=1) > max_shift
+        out[far] = np.asarray(fallback, dtype=np.float64)[far]
+    return out
