@@ -44,7 +44,7 @@ class FlakyProxy:
 
         class Handler(BaseHTTPRequestHandler):
             def _forward(self, method: str):
-                body = self.rfile.read(int(self.headers.get("content-length") or 0))
+                body = self._body()
                 if method == "POST":
                     proxy.posts += 1
                     if proxy.posts <= proxy.fail_posts:
@@ -52,7 +52,8 @@ class FlakyProxy:
                         self.send_header("content-length", "0")
                         self.end_headers()
                         return
-                headers = {k: v for k, v in self.headers.items() if k.lower() not in ("host", "content-length")}
+                headers = {k: v for k, v in self.headers.items()
+                           if k.lower() not in ("host", "content-length", "transfer-encoding")}
                 r = httpx.request(method, proxy.target + self.path, content=body, headers=headers, timeout=60)
                 self.send_response(r.status_code)
                 for k, v in r.headers.items():
@@ -61,6 +62,18 @@ class FlakyProxy:
                 self.send_header("content-length", str(len(r.content)))
                 self.end_headers()
                 self.wfile.write(r.content)
+
+            def _body(self) -> bytes:
+                if "chunked" not in self.headers.get("transfer-encoding", "").lower():
+                    return self.rfile.read(int(self.headers.get("content-length") or 0))
+                out = []
+                while True:  # dicomweb-client streams STOW-RS bodies chunked
+                    size = int(self.rfile.readline().split(b";")[0].strip() or b"0", 16)
+                    if size == 0:
+                        self.rfile.readline()
+                        return b"".join(out)
+                    out.append(self.rfile.read(size))
+                    self.rfile.readline()
 
             def do_GET(self):
                 self._forward("GET")

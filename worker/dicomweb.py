@@ -39,7 +39,11 @@ def client(url: str, settings: Settings):
     if why:
         raise DicomwebError("dicomweb_refused", f"{url[:200]} is not an allowed DICOMweb server: {why}")
     headers = {"Authorization": settings.dicomweb_authorization} if settings.dicomweb_authorization else None
-    return DICOMwebClient(url, headers=headers, timeout=settings.dicomweb_timeout_s)
+    web = DICOMwebClient(url, headers=headers, timeout=settings.dicomweb_timeout_s)
+    # no silent in-request retries (dicomweb-client would wait up to ~30 s inside the worker): a
+    # failed request is one attempt, and the delivery's own back-off through the queue decides
+    web.set_http_retry_params(retry=False)
+    return web
 
 
 def _http_error(exc: Exception, what: str, not_found_code: str) -> DicomwebError:
@@ -120,4 +124,10 @@ def store_results(url: str, study_uid: str, artifacts_dir: Path, settings: Setti
         reasons = sorted({str(item.get("FailureReason", "?")) for item in failed})
         raise DicomwebError("stow_refused", f"the PACS refused {len(failed)} of {len(datasets)} instances "
                                             f"(failure reasons {', '.join(reasons)})")
-    return [str(ds.SOPInstanceUID) for ds in datasets]
+    sent = [str(ds.SOPInstanceUID) for ds in datasets]
+    stored = {str(item.get("ReferencedSOPInstanceUID", "")) for item in
+              (answer.get("ReferencedSOPSequence") or [] if answer is not None else [])}
+    if not set(sent) <= stored:  # a 200 that does not confirm every instance is not a delivery
+        raise DicomwebError("stow_incomplete", f"the PACS confirmed {len(stored & set(sent))} of {len(sent)} "
+                                               "instances in its STOW-RS answer", retryable=True)
+    return sent
