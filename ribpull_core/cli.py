@@ -239,7 +239,8 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--method", default=None, choices=sorted(METHOD_CLASSES), help="override the preset's method")
     f.add_argument("--iterations", type=int, default=None, help="override the training schedule length")
     f.add_argument("--resolution", type=int, default=None, help="finest marching-cubes cells along the longest side")
-    f.add_argument("--labels", type=int, nargs="+", default=None, help="NIfTI label values to reconstruct")
+    f.add_argument("--labels", type=int, nargs="+", default=None,
+                   help="NIfTI label values (DICOM SEG: segment numbers) to reconstruct")
     f.add_argument("--device", default="auto", help="auto | cpu | cuda")
     f.add_argument("--seed", type=int, default=0)
     f.add_argument("--reference", default=None, help="mesh or points to measure against instead of the input")

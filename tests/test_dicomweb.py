@@ -233,7 +233,7 @@ def _check_results(stack, study, job, results: dict[str, pydicom.Dataset], ribs:
     voxel = float(np.linalg.norm(vol.spacing))  # the voxel diagonal
     from scipy.spatial import cKDTree
 
-    surface = trimesh.sample.sample_surface(mesh, 200_000, seed=0)[0]
+    surface = trimesh.sample.sample_surface(mesh, 100_000, seed=0)[0]
     d_seg_to_mesh = cKDTree(surface).query(centres, workers=-1)[0]
     d_mesh_to_seg = cKDTree(centres).query(surface, workers=-1)[0]
     # and they are inside the fitted field: the job's own /query at the SEG's voxel centres (LPS mm)
@@ -362,6 +362,14 @@ def test_refused_and_failing_sources(dicom_stack, orthanc, phantom_in_pacs, tmp_
         bad = _job_body(orthanc.dicomweb, seg_in, None)
         bad["source"]["dicomweb"]["password"] = "secret"
         assert servicekit.assert_problem(c.post("/v1/jobs", json=bad), 422)["code"] == "validation_error"
+
+    # DICOM uploads are read by the same reader: a CT slice, a SEG without references -> 4xx at once
+    no_refs = copy.deepcopy(seg_in)
+    del no_refs.ReferencedSeriesSequence
+    no_refs.save_as(tmp_path / "no_refs.dcm")
+    with dicom_stack.client() as c:
+        for path, code in ((phantom_in_pacs["ct"][0], "not_segmentation"), (tmp_path / "no_refs.dcm", "seg_no_reference")):
+            assert servicekit.assert_problem(servicekit.submit(c, path, SMOKE), 422)["code"] == code
 
     # a SEG whose CT series is not on the PACS
     orphan = copy.deepcopy(seg_in)
