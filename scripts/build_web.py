@@ -51,22 +51,25 @@ def is_current() -> bool:
     return stamped == lock_digest() and all((VENDOR_DIR / f).is_file() for f in VENDOR_FILES)
 
 
-def find_npm() -> str | None:
-    """npm on PATH, else Debian's npm installed with apt-get when we are root (None if impossible)."""
-    npm = shutil.which("npm")
-    if npm or os.geteuid() != 0 or not shutil.which("apt-get"):
-        return npm
-    print("build_web: npm is missing; installing Debian's npm with apt-get", file=sys.stderr)
+def debian_binary(binary: str, package: str, quiet: bool = False) -> str | None:
+    """`binary` on PATH, else installed from Debian's `package` with apt-get when we are root; None
+    when it is missing and cannot be installed. (The web page's browser tests get chromium so too.)"""
+    found = shutil.which(binary)
+    if found or os.geteuid() != 0 or not shutil.which("apt-get"):
+        return found
+    print(f"{binary} is missing; installing Debian's {package} with apt-get", file=sys.stderr)
     env = {**os.environ, "DEBIAN_FRONTEND": "noninteractive"}
-    subprocess.run(["apt-get", "update"], env=env, check=False)
-    subprocess.run(["apt-get", "install", "-y", "--no-install-recommends", "npm"], env=env, check=False)
-    return shutil.which("npm")
+    out = subprocess.DEVNULL if quiet else None
+    subprocess.run(["apt-get", "update"], env=env, check=False, stdout=out, stderr=out)
+    subprocess.run(["apt-get", "install", "-y", "--no-install-recommends", package], env=env, check=False,
+                   stdout=out, stderr=out)
+    return shutil.which(binary)
 
 
 def build(node_modules: Path | None = None) -> bool:
     """npm ci (unless `node_modules` is given) and copy VENDOR_FILES; False with a warning on failure."""
     if node_modules is None:
-        npm = find_npm()
+        npm = debian_binary("npm", "npm")
         if npm is None:
             warn("npm is not installed and cannot be installed here")
             return False

@@ -18,7 +18,6 @@ import io
 import os
 import re
 import shutil
-import subprocess
 import sys
 import time
 import warnings
@@ -48,15 +47,8 @@ def skip_loudly(why: str):
 
 
 def chromium_executable() -> str | None:
-    """Debian's chromium, installed with apt-get once when missing and we are root."""
-    found = shutil.which("chromium") or shutil.which("chromium-browser")
-    if found or os.geteuid() != 0 or not shutil.which("apt-get"):
-        return found
-    env = {**os.environ, "DEBIAN_FRONTEND": "noninteractive"}
-    subprocess.run(["apt-get", "update"], env=env, check=False, capture_output=True)
-    subprocess.run(["apt-get", "install", "-y", "--no-install-recommends", "chromium"], env=env, check=False,
-                   capture_output=True)
-    return shutil.which("chromium")
+    """Debian's chromium, installed with apt-get when missing and we are root (once: then it is there)."""
+    return shutil.which("chromium-browser") or build_web.debian_binary("chromium", "chromium", quiet=True)
 
 
 @pytest.fixture(scope="module")
