@@ -383,6 +383,16 @@ def test_refused_and_failing_sources(dicom_stack, orthanc, phantom_in_pacs, tmp_
         "source_not_seg": {"series_uid": str(ct0.SeriesInstanceUID)},
         "referenced_series_missing": {"series_uid": str(orphan.SeriesInstanceUID)},
     }
+    # Idempotency-Key: the same body is the same job; another body with the same key is refused
+    body = _job_body(orthanc.dicomweb, seg_in, None)
+    body["source"]["dicomweb"]["series_uid"] = cases["source_not_found"]["series_uid"]
+    with dicom_stack.client() as c:
+        first = c.post("/v1/jobs", json=body, headers={"Idempotency-Key": "seg-job-1"})
+        again = c.post("/v1/jobs", json=body, headers={"Idempotency-Key": "seg-job-1"})
+        assert (first.status_code, again.status_code) == (202, 200) and first.json()["id"] == again.json()["id"]
+        body["params"] = {"preset": "smoke", "seed": 1}
+        reused = c.post("/v1/jobs", json=body, headers={"Idempotency-Key": "seg-job-1"})
+        assert servicekit.assert_problem(reused, 422)["code"] == "idempotency_key_reused"
     jobs = {}
     for code, change in cases.items():
         body = _job_body(orthanc.dicomweb, seg_in, orthanc.dicomweb)

@@ -133,7 +133,10 @@ def test_bad_request_shapes(service, case):
                 f"{json.dumps(SMOKE)}\r\n--{boundary}--\r\n").encode()
         assert_problem(_raw_post(service, body, f"multipart/form-data; boundary={boundary}"), 422)
     elif case == "not_multipart_json":
-        assert_problem(_raw_post(service, json.dumps({"file": "x"}).encode(), "application/json"), 415)
+        # JSON is the body of a job that names a DICOMweb source: without `source` it is a 422 naming it
+        r = _raw_post(service, json.dumps({"file": "x"}).encode(), "application/json")
+        assert "source" in assert_problem(r, 422)["detail"]
+        assert_problem(_raw_post(service, b"file=x", "application/x-www-form-urlencoded"), 415)
     elif case == "no_boundary":
         assert_problem(_raw_post(service, ok_part, "multipart/form-data"), 400)
     elif case == "truncated_multipart":
