@@ -22,12 +22,18 @@ from scipy.spatial import cKDTree
 class LocalQuadrics:
     """Per-point patches. centre (N, 3): neighbourhood centroid; frame (N, 3, 3): rows e1, e2, n;
     coef (N, 6): height-field coefficients (a0..a5 above); radius (N,): distance to the k-th
-    neighbour (the patch's extent)."""
+    neighbour (the patch's extent); residual (N,): weighted RMS distance of the neighbours from the
+    fitted height field (sample noise on a smooth sheet; a large fraction of `radius` where the
+    neighbourhood is no height field: around a thin tube, across two sheets); one_sided (N,) bool:
+    every neighbour's oriented normal faces the point's way (all True when no normals were given).
+    """
 
     centre: np.ndarray
     frame: np.ndarray
     coef: np.ndarray
     radius: np.ndarray
+    residual: np.ndarray
+    one_sided: np.ndarray
 
 
 def _monomials(u: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -35,8 +41,13 @@ def _monomials(u: np.ndarray, v: np.ndarray) -> np.ndarray:
     return np.stack([np.ones_like(u), u, v, u * u, u * v, v * v], axis=-1)
 
 
-def fit_local_quadrics(points: np.ndarray, k: int = 20, chunk: int = 25_000) -> LocalQuadrics:
+def fit_local_quadrics(points: np.ndarray, k: int = 20, chunk: int = 25_000,
+                       normals: np.ndarray | None = None) -> LocalQuadrics:
     """(N, 3) points -> one quadric patch per point over its k nearest neighbours (itself included).
+
+    normals: optional (N, 3) consistently oriented normals; a patch is `one_sided` when all its
+    neighbours' normals have a positive dot product with its point's (no sample from the far side
+    of a thin structure is in it).
 
     Weights exp(-(u^2 + v^2) / r^2), r the distance to the k-th neighbour, favour the near samples;
     a tiny ridge keeps degenerate neighbourhoods (collinear samples) solvable. `chunk` points are
@@ -48,6 +59,7 @@ def fit_local_quadrics(points: np.ndarray, k: int = 20, chunk: int = 25_000) -> 
     centre = np.empty((n, 3))
     frame = np.empty((n, 3, 3))
     coef = np.empty((n, 6))
+    residual = np.empty(n)
     for s in range(0, n, chunk):
         sl = slice(s, min(s + chunk, n))
         nb = pts[nn[sl]]  # (c, k, 3)
@@ -63,25 +75,38 @@ def fit_local_quadrics(points: np.ndarray, k: int = 20, chunk: int = 25_000) -> 
         ata = np.einsum("nk,nki,nkj->nij", wt, a, a) + 1e-10 * r2[:, :, None] * np.eye(6)
         atb = np.einsum("nk,nki,nk->ni", wt, a, w)
         coef[sl] = np.linalg.solve(ata, atb[..., None])[..., 0]
+        err = w - np.einsum("nki,ni->nk", a, coef[sl])
+        residual[sl] = np.sqrt((wt * err * err).sum(1) / wt.sum(1))
         centre[sl], frame[sl] = c, rot
-    return LocalQuadrics(centre, frame, coef, dist[:, -1].copy())
+    one_sided = np.ones(n, bool)
+    if normals is not None:
+        nrm = np.asarray(normals, dtype=np.float64)
+        one_sided = np.einsum("nkj,nj->nk", nrm[nn], nrm).min(axis=1) > 0.0
+    return LocalQuadrics(centre, frame, coef, dist[:, -1].copy(), residual, one_sided)
 
 
 def project_onto_quadrics(queries: np.ndarray, nearest: np.ndarray, quadrics: LocalQuadrics,
-                          fallback: np.ndarray | None = None, max_shift: float | None = None) -> np.ndarray:
+                          fallback: np.ndarray | None = None, max_shift: float | None = None,
+                          max_relative_residual: float | None = None) -> np.ndarray:
     """(Q, 3) queries, (Q,) index of each query's nearest input point -> (Q, 3) the point of that
     point's patch above or below the query (along the patch normal).
 
     With `fallback` (Q, 3) (e.g. the nearest samples themselves) and `max_shift`, a projection that
-    lands farther than max_shift from its fallback point (a patch that does not describe the surface
-    there: two sheets in one neighbourhood, a sharp tip) is replaced by the fallback."""
+    lands farther than max_shift from its fallback point, comes from a patch that is not one-sided,
+    or from a patch whose residual
+    exceeds max_relative_residual x its radius (a patch that does not describe the surface there:
+    two sheets in one neighbourhood, a tube thinner than the patch), is replaced by the fallback."""
     q = np.asarray(queries, dtype=np.float64)
     c, rot, a = quadrics.centre[nearest], quadrics.frame[nearest], quadrics.coef[nearest]
     loc = np.einsum("nj,nij->ni", q - c, rot)
     u, v = loc[:, 0], loc[:, 1]
     w = np.einsum("ni,ni->n", _monomials(u, v), a)
     out = c + u[:, None] * rot[:, 0] + v[:, None] * rot[:, 1] + w[:, None] * rot[:, 2]
-    if fallback is not None and max_shift is not None:
-        far = np.linalg.norm(out - fallback, axis=1) > max_shift
-        out[far] = np.asarray(fallback, dtype=np.float64)[far]
+    if fallback is not None:
+        bad = ~quadrics.one_sided[nearest]
+        if max_shift is not None:
+            bad |= np.linalg.norm(out - fallback, axis=1) > max_shift
+        if max_relative_residual is not None:
+            bad |= quadrics.residual[nearest] > max_relative_residual * quadrics.radius[nearest]
+        out[bad] = np.asarray(fallback, dtype=np.float64)[bad]
     return out

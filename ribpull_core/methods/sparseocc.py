@@ -87,6 +87,8 @@ class QueryConfig:
     "quadric" (that point's local quadric patch over target_knn neighbours, `ribpull_core.quadrics`:
     a smooth surface between the samples that averages their noise); a projection that moves more
     than target_max_shift sampling gaps from the nearest point falls back to the point.
+    label_map_targets: the same choice for label maps (inputs with known occupancy), whose boundary
+    points already sit on the smoothed mask's 0.5 crossing.
     """
 
     n_queries: int = 1_000_000
@@ -100,6 +102,7 @@ class QueryConfig:
     max_input_points: int = 200_000
     outlier_gap_factor: float = 0.0
     targets: str = "nearest"
+    label_map_targets: str = "nearest"
     target_knn: int = 20
     target_max_shift: float = 1.0
 
@@ -174,12 +177,16 @@ def default_config() -> SparseOccConfig:
     cell and mesh at the level that best separates those centres. The tables learn at 5e-3 on
     points (2e-2 left the surface following the sample noise: on 60k / 0.3 mm points CD-L1 0.323 ->
     0.309 mm, HD 3.3 -> 1.9 mm; neutral at 5k and 20k) and at 2e-2 on label maps (5e-3 there: 0.293
-    -> 0.300 mm). Measured in docs/benchmarks.md."""
+    -> 0.300 mm). On point clouds eq. 1 pulls each query to its nearest point's local quadric patch
+    (20 neighbours) instead of the point, wherever all the patch's samples face one way: a smooth
+    target between the samples (60k / 0.3 mm: CD-L1 0.309 -> 0.284 mm); at 5k points no patch
+    is one-sided (a 20-point patch wraps around a rib), so sparse inputs keep the paper's targets.
+    Measured in docs/benchmarks.md (benchmarks/pull_targets_ab.py)."""
     return SparseOccConfig(
         field=FieldConfig(network="grid", grid_levels=8, grid_log2_table=18, grid_max_resolution=256, grid_lr=5e-3,
                           grid_lr_label_map=2e-2, grid_finest_cell=1.0, grid_finest_cell_label_map=1.5),
         queries=QueryConfig(n_queries=400_000, scales=(0.5, 1.0, 2.0), batch_size=2048, jitter=(0.0, 0.0),
-                            gradient="finite_difference", outlier_gap_factor=2.5),
+                            gradient="finite_difference", outlier_gap_factor=2.5, targets="quadric"),
         entropy=EntropyConfig(input_points=1000, uniform_points=1000, lambda_max=1.0, n_minimax=200),
         sign=SignConfig(free_space_weight=10.0, free_space_points=2048, near_surface_weight=10.0,
                         near_surface_points=4096, known_weight=10.0),
@@ -209,7 +216,8 @@ class SpaceLabels:
     free: (M, 3) points certainly outside; free_distance: (M,) their distance to the nearest input
     point. near_in / near_out: (K, 3) points just inside / outside
     the sampled surface (input point -/+ offset along its normal, oriented by the flood fill).
-    spacing: flood-fill voxel size; offset: the normal offset used.
+    spacing: flood-fill voxel size; offset: the normal offset used; normals (N, 3): the input
+    points' flood-fill-oriented unit normals.
     """
 
     free: np.ndarray
@@ -218,6 +226,7 @@ class SpaceLabels:
     near_out: np.ndarray
     spacing: float
     offset: float
+    normals: np.ndarray
 
 
 def outside_mask(points_unit: np.ndarray, block_factor: float = 1.0, max_cells: int = 384
@@ -281,7 +290,7 @@ def space_labels(points_unit: np.ndarray, rng: np.random.Generator, n_free: int 
     offset = offset_fraction * 2 * spacing  # in units of the blocking radius (2 voxels)
     free_distance = cKDTree(points_unit).query(free, k=1, workers=-1)[0].astype(np.float32) if len(free) else np.zeros(0, np.float32)
     return SpaceLabels(free, free_distance, (points_unit - offset * normals).astype(np.float32),
-                       (points_unit + offset * normals).astype(np.float32), spacing, offset)
+                       (points_unit + offset * normals).astype(np.float32), spacing, offset, normals)
 
 
 def classification_level(u: np.ndarray, inside: np.ndarray) -> float:
@@ -386,10 +395,10 @@ class SparseOcc(Method):
         self.points = pts
         queries, nearest = self._queries(pts, rng)
         self.q_all = torch.from_numpy(queries).to(device)
-        self.target_all = torch.from_numpy(self._pull_targets(pts, queries, nearest)).to(device)
         self.pts_t = torch.from_numpy(pts.astype(np.float32)).to(device)
         s = cfg.sign
         self.free = self.near = None
+        labels = None
         if s.free_space_weight > 0 or s.near_surface_weight > 0:
             labels = space_labels(pts, rng, offset_fraction=s.near_surface_offset)
             if s.free_space_weight > 0 and len(labels.free):
@@ -399,6 +408,9 @@ class SparseOcc(Method):
             if s.near_surface_weight > 0:
                 self.near = torch.from_numpy(np.concatenate([labels.near_in, labels.near_out])).to(device)
                 self.near_margin = 0.5 * labels.offset
+        target_kind = cfg.queries.label_map_targets if known is not None else cfg.queries.targets
+        normals = labels.normals if labels is not None else None
+        self.target_all = torch.from_numpy(self._pull_targets(pts, queries, nearest, target_kind, normals)).to(device)
         self.known = None
         if known is not None and s.known_weight > 0 and len(known.points):
             self.known = torch.from_numpy(np.asarray(known.points, np.float32)).to(device)
@@ -492,15 +504,18 @@ class SparseOcc(Method):
             return classification_level(u, self.known_inside.cpu().numpy())
         return float(np.median(fitted.evaluate(self.points.astype(np.float32))["U"]))
 
-    def _pull_targets(self, pts: np.ndarray, queries: np.ndarray, nearest: np.ndarray) -> np.ndarray:
-        """(Q, 3) float32 eq. 1 targets: the nearest input points, or their local quadric patches
-        under the queries (`queries.targets`)."""
+    def _pull_targets(self, pts: np.ndarray, queries: np.ndarray, nearest: np.ndarray, kind: str,
+                      normals: np.ndarray | None = None) -> np.ndarray:
+        """(Q, 3) float32 eq. 1 targets: the nearest input points ("nearest"), or their local
+        quadric patches under the queries ("quadric"). With oriented `normals` (N, 3), a patch whose
+        neighbours do not all face its point's way (it spans both sides of a thin rib: sparse input)
+        is not used: its queries keep their nearest point."""
         qc = self.config.queries
-        if qc.targets == "nearest":
+        if kind == "nearest":
             return pts[nearest].astype(np.float32)
-        if qc.targets != "quadric":
-            raise ValueError(f"unknown pull targets {qc.targets!r}: 'nearest' or 'quadric'")
-        patches = fit_local_quadrics(pts, qc.target_knn)
+        if kind != "quadric":
+            raise ValueError(f"unknown pull targets {kind!r}: 'nearest' or 'quadric'")
+        patches = fit_local_quadrics(pts, qc.target_knn, normals=normals)
         return project_onto_quadrics(queries, nearest, patches, fallback=pts[nearest],
                                      max_shift=qc.target_max_shift * sampling_gap(pts)).astype(np.float32)
 
