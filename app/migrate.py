@@ -189,10 +189,17 @@ def _upgrade_locked(conn: Connection, url: str, revision: str) -> tuple[str | No
     return before, MigrationContext.configure(conn).get_current_revision()
 
 
+def _short_lived_engine(url: str) -> Engine:
+    """An engine for one start-up check or upgrade; SQLite waits up to 30 s for another process's
+    write lock (the default 5 s is too short on a busy machine with API and workers starting)."""
+    connect_args = {"timeout": 30} if url.startswith("sqlite") else {}
+    return create_engine(url, poolclass=pool.NullPool, connect_args=connect_args)
+
+
 def upgrade(url: str, revision: str = "head") -> tuple[str | None, str | None]:
     """Bring the database at `url` to `revision` (default head); returns (revision before, after).
     Safe to run from several processes at once (they wait on the migration lock)."""
-    engine = create_engine(url, poolclass=pool.NullPool)
+    engine = _short_lived_engine(url)
     try:
         with _migration_lock(engine) as conn:
             before, after = _upgrade_locked(conn, url, revision)
@@ -226,7 +233,7 @@ def ensure_schema(engine: Engine) -> None:
 
 def ensure_schema_at(url: str) -> None:
     """ensure_schema on a short-lived engine (start-up checks of the worker and scripts/serve.py)."""
-    engine = create_engine(url, poolclass=pool.NullPool)
+    engine = _short_lived_engine(url)
     try:
         db_file = engine.url.database if engine.dialect.name == "sqlite" else None
         if db_file and db_file != ":memory:":
