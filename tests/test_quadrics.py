@@ -59,3 +59,21 @@ def test_far_projections_fall_back_to_the_samples():
     guarded = project_onto_quadrics(queries, nearest, patches, fallback=pts[nearest], max_shift=0.015)
     np.testing.assert_allclose(guarded[far], pts[nearest][far])
     np.testing.assert_allclose(guarded[~far], plain[~far])
+
+
+def test_patches_across_both_sides_of_a_thin_plate_are_not_used():
+    # a 0.05-thick plate sampled on both faces, normals pointing out of each face
+    rng = np.random.default_rng(4)
+    xy = rng.uniform(0, 1, (4000, 2))
+    top = np.arange(4000) % 2 == 1
+    pts = np.column_stack([xy, np.where(top, 0.05, 0.0)])
+    normals = np.zeros_like(pts)
+    normals[:, 2] = np.where(top, 1.0, -1.0)
+    thin = fit_local_quadrics(pts, k=20, normals=normals)
+    assert not thin.one_sided.any()
+    queries = pts[:100] + [0.0, 0.0, 0.001]
+    kept = project_onto_quadrics(queries, np.arange(100), thin, fallback=pts[:100])
+    np.testing.assert_allclose(kept, pts[:100])
+    # one face alone: every patch is one-sided and used
+    face = fit_local_quadrics(pts[~top], k=20, normals=normals[~top])
+    assert face.one_sided.all()
