@@ -62,11 +62,11 @@ def test_far_projections_fall_back_to_the_samples():
 
 
 def test_patches_across_both_sides_of_a_thin_plate_are_not_used():
-    # a 0.05-thick plate sampled on both faces, normals pointing out of each face
+    # a 0.01-thick plate (thinner than a patch) sampled on both faces, normals out of each face
     rng = np.random.default_rng(4)
     xy = rng.uniform(0, 1, (4000, 2))
     top = np.arange(4000) % 2 == 1
-    pts = np.column_stack([xy, np.where(top, 0.05, 0.0)])
+    pts = np.column_stack([xy, np.where(top, 0.01, 0.0)])
     normals = np.zeros_like(pts)
     normals[:, 2] = np.where(top, 1.0, -1.0)
     thin = fit_local_quadrics(pts, k=20, normals=normals)
