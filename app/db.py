@@ -8,7 +8,9 @@ UPDATE statements, so they are atomic on both databases and never need row locks
 
 from __future__ import annotations
 
+import sqlite3
 import threading
+import time
 from datetime import datetime, timezone
 from typing import Any
 
@@ -133,6 +135,21 @@ _engines: dict[str, Engine] = {}
 _lock = threading.Lock()
 
 
+def _set_wal_mode(cursor, wait_s: float = 30.0) -> None:
+    """PRAGMA journal_mode=WAL, retried: switching needs an exclusive lock, and while another process
+    holds a write transaction (a worker creating the schema as the API starts) SQLite answers
+    "database is locked" at once instead of waiting in the busy handler."""
+    deadline = time.monotonic() + wait_s
+    while True:
+        try:
+            cursor.execute("PRAGMA journal_mode=WAL")
+            return
+        except sqlite3.OperationalError as exc:
+            if "locked" not in str(exc) or time.monotonic() > deadline:
+                raise
+            time.sleep(0.1)
+
+
 def make_engine(settings: Settings) -> Engine:
     url = settings.db_url
     with _lock:
@@ -146,8 +163,8 @@ def make_engine(settings: Settings) -> Engine:
             @event.listens_for(eng, "connect")
             def _sqlite_pragmas(dbapi_conn, _record):
                 cur = dbapi_conn.cursor()
-                cur.execute("PRAGMA journal_mode=WAL")
                 cur.execute("PRAGMA busy_timeout=30000")
+                _set_wal_mode(cur)
                 cur.execute("PRAGMA synchronous=NORMAL")
                 cur.close()
         else:

@@ -19,14 +19,7 @@ def service(tmp_path_factory):
     # RIBPULL_TEST_ENV='{"RIBPULL_DATABASE_URL": "postgresql+psycopg2://..."}' runs the stack differently
     extra = json.loads(os.environ.get("RIBPULL_TEST_ENV") or "{}")
     stack = servicekit.Stack(tmp_path_factory.mktemp("service"), extra)
-    try:
-        stack.start()
-    except Exception:
-        print(stack.tail())
-        stack.stop()
-        raise
-    yield stack
-    stack.stop()
+    yield from stack.serve()
 
 
 @pytest.fixture(scope="session")

@@ -12,6 +12,7 @@ import json
 import os
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -113,6 +114,20 @@ class Stack:
         self.start_api()
         self.wait_ready()
         return self
+
+    def serve(self, worker_dirs: list[Path] | None = None) -> Iterator[Stack]:
+        """For fixtures: start (printing the logs' tails and stopping everything if that fails),
+        yield the running stack, stop it afterwards."""
+        try:
+            self.start(worker_dirs)
+        except Exception:
+            print(self.tail())
+            self.stop()
+            raise
+        try:
+            yield self
+        finally:
+            self.stop()
 
     def start_worker(self, workdir: Path | None = None):
         """One more worker (prefork, one pool process), in `workdir` (created) or the repository root."""

@@ -127,18 +127,13 @@ def dicom_stack(tmp_path_factory, orthanc):
                                           + ([auto.dicomweb] if auto else [])),
         "RIBPULL_DICOMWEB_BACKOFF_S": "0.5", "RIBPULL_DICOMWEB_MAX_ATTEMPTS": "3", "RIBPULL_DICOMWEB_TIMEOUT_S": "30",
     })
-    try:
-        stack.start()
-    except Exception:
-        print(stack.tail())
-        stack.stop()
-        raise
     stack.autoroute, stack.proxy = auto, proxy
-    yield stack
-    stack.stop()
-    proxy.stop()
-    if auto is not None:
-        auto.stop()
+    try:
+        yield from stack.serve()
+    finally:
+        proxy.stop()
+        if auto is not None:
+            auto.stop()
 
 
 @pytest.fixture(scope="module")

@@ -37,14 +37,7 @@ def service(tmp_path_factory, postgres):
     """Redis + worker + API with the job store in Postgres (a bare postgresql:// URL, as users write it)."""
     postgres.create_database("e2e")
     stack = Stack(tmp_path_factory.mktemp("service-pg"), database_url=postgres.url("e2e", "postgresql"))
-    try:
-        stack.start()
-    except Exception:
-        print(stack.tail())
-        stack.stop()
-        raise
-    yield stack
-    stack.stop()
+    yield from stack.serve()
 
 
 @pytest.fixture(scope="module")

@@ -49,14 +49,7 @@ def stack(tmp_path_factory):
         "RIBPULL_PIPELINE": "test_service_worker_limits:pipeline",
     })
     s.env["PYTHONPATH"] = here + ":" + s.env["PYTHONPATH"]
-    try:
-        s.start()
-    except Exception:
-        print(s.tail())
-        s.stop()
-        raise
-    yield s
-    s.stop()
+    yield from s.serve()
 
 
 def _xyz(points) -> bytes:

@@ -106,10 +106,9 @@ async def create_job(
             f"{up.sha256}|{up.path.name.lower()}|{json.dumps(stored, sort_keys=True)}".encode()
         ).hexdigest()
         key = idempotency_key.strip() if idempotency_key else None
-        if key:
-            existing = await run_in_threadpool(_find_idem, sm, owner, key)
-            if existing is not None:
-                return _replay(existing, fingerprint, response, settings)
+        replay = await _replay_if_seen(sm, owner, key, fingerprint, response, settings)
+        if replay is not None:
+            return replay
         cloud = await run_in_threadpool(validate_input, up.path, params, settings)
 
         job_id = uuid.uuid4().hex
@@ -183,10 +182,9 @@ async def _create_dicomweb_job(request: Request, response: Response, owner: str,
         json.dumps({"source": source, "deliver": deliver_url, "params": stored}, sort_keys=True).encode()
     ).hexdigest()
     key = idempotency_key.strip() if idempotency_key else None
-    if key:
-        existing = await run_in_threadpool(_find_idem, sm, owner, key)
-        if existing is not None:
-            return _replay(existing, fingerprint, response, settings)
+    replay = await _replay_if_seen(sm, owner, key, fingerprint, response, settings)
+    if replay is not None:
+        return replay
     job_id = uuid.uuid4().hex
     now = utcnow()
     job = Job(
@@ -229,6 +227,16 @@ async def _check_limits(params: JobParams, settings: Settings) -> None:
 def _find_idem(sm, owner: str, key: str) -> Job | None:
     with sm() as s:
         return s.scalars(select(Job).where(Job.owner == owner, Job.idempotency_key == key)).first()
+
+
+async def _replay_if_seen(sm, owner: str, key: str | None, fingerprint: str, response: Response,
+                          settings: Settings) -> dict | None:
+    """The replay of the job created earlier with this Idempotency-Key (422 when its payload
+    differs), or None when there is no key or no such job yet."""
+    if not key:
+        return None
+    existing = await run_in_threadpool(_find_idem, sm, owner, key)
+    return None if existing is None else _replay(existing, fingerprint, response, settings)
 
 
 def _replay(existing: Job, fingerprint: str, response: Response, settings: Settings):
