@@ -10,11 +10,12 @@ from __future__ import annotations
 import datetime as _dt
 from pathlib import Path
 
-from pydicom.dataset import Dataset, FileMetaDataset
+from pydicom.dataset import Dataset
 from pydicom.sequence import Sequence
-from pydicom.uid import ExplicitVRLittleEndian, generate_uid
+from pydicom.uid import generate_uid
 
 from . import ENCAPSULATED_STL_SOP_CLASS_UID, MANUFACTURER, MODEL_NAME, SOFTWARE_VERSION
+from .instance import new_instance
 from .seg_read import PATIENT_STUDY_KEYWORDS
 
 
@@ -27,13 +28,7 @@ def write_encapsulated_stl(path: str | Path, source, mesh, series_number: int = 
                            title: str = "RibPull rib surface") -> Dataset:
     """Write `mesh` (trimesh, LPS mm) as Encapsulated STL Storage to `path`; returns the dataset."""
     now = _dt.datetime.now()
-    ds = Dataset()
-    ds.file_meta = FileMetaDataset()
-    ds.file_meta.MediaStorageSOPClassUID = ENCAPSULATED_STL_SOP_CLASS_UID
-    ds.file_meta.MediaStorageSOPInstanceUID = generate_uid()
-    ds.file_meta.TransferSyntaxUID = ExplicitVRLittleEndian
-    ds.SOPClassUID = ENCAPSULATED_STL_SOP_CLASS_UID
-    ds.SOPInstanceUID = ds.file_meta.MediaStorageSOPInstanceUID
+    ds = new_instance(ENCAPSULATED_STL_SOP_CLASS_UID)
     for kw in PATIENT_STUDY_KEYWORDS:  # patient, study and frame of reference of the source
         setattr(ds, kw, source.header.get(kw, ""))
     ds.Modality = "M3D"

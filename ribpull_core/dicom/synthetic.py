@@ -12,10 +12,11 @@ import datetime as _dt
 from pathlib import Path
 
 import numpy as np
-from pydicom.dataset import Dataset, FileMetaDataset
-from pydicom.uid import ExplicitVRLittleEndian, generate_uid
+from pydicom.dataset import Dataset
+from pydicom.uid import generate_uid
 
 from . import CT_SOP_CLASS_UID, LPS_FROM_RAS, MODEL_NAME, SOFTWARE_VERSION
+from .instance import new_instance
 from .ribs import CATEGORY_CODE, RIB_CODE, rib_side_number
 
 #: not "RibPull": these stand for a scanner's and a segmenter's objects, not RibPull's results
@@ -37,13 +38,7 @@ def ct_series_from_labels(labels: np.ndarray, affine_ras: np.ndarray, *, patient
     today = _dt.date.today().strftime("%Y%m%d")
     out = []
     for k in range(labels.shape[2]):
-        ds = Dataset()
-        ds.file_meta = FileMetaDataset()
-        ds.file_meta.MediaStorageSOPClassUID = CT_SOP_CLASS_UID
-        ds.file_meta.MediaStorageSOPInstanceUID = generate_uid()
-        ds.file_meta.TransferSyntaxUID = ExplicitVRLittleEndian
-        ds.SOPClassUID = CT_SOP_CLASS_UID
-        ds.SOPInstanceUID = ds.file_meta.MediaStorageSOPInstanceUID
+        ds = new_instance(CT_SOP_CLASS_UID)
         ds.PatientName, ds.PatientID, ds.PatientBirthDate, ds.PatientSex = "Phantom^Rib", patient_id, "", "O"
         ds.StudyInstanceUID, ds.SeriesInstanceUID, ds.FrameOfReferenceUID = study_uid, series_uid, for_uid
         ds.StudyDate = ds.SeriesDate = ds.ContentDate = today
