@@ -42,6 +42,10 @@ class JobParams(BaseModel):
     )
     skeleton: bool = Field(True, description="Also extract the rib skeleton.")
     preview: bool = Field(True, description="Also render preview.png.")
+    dicom_outputs: bool = Field(
+        False, description="A NIfTI label map also gets the DICOM outputs (seg.dcm, measurements_sr.dcm, mesh_stl.dcm, "
+                           "in the LPS patient frame) on a generated CT study, study_ct.zip. A DICOM SEG input gets "
+                           "them anyway; a point cloud is refused (422 dicom_outputs_need_label_map).")
     seed: int = Field(0, ge=0, le=2**31 - 1)
     units: Units = Field(
         "mm", description="Unit of the input's coordinates (point clouds) or affine (NIfTI): mm, cm or m. The "

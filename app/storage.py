@@ -42,6 +42,7 @@ ARTIFACT_MEDIA_TYPES = {
     "seg.dcm": "application/dicom",
     "measurements_sr.dcm": "application/dicom",
     "mesh_stl.dcm": "application/dicom",
+    "study_ct.zip": "application/zip",
 }
 
 JOB_ID_RE = re.compile(r"^[0-9a-f]{32}$")

@@ -52,6 +52,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
         preset=args.preset, method=args.method, iterations=args.iterations, resolution=args.resolution,
         labels=args.labels, skeleton=not args.no_skeleton, preview=not args.no_preview, device=args.device,
         seed=args.seed, reference=args.reference, metrics_samples=args.metrics_samples,
+        dicom_outputs=args.dicom_outputs,
     )
     bar, on_progress = _progress_bar() if not args.quiet else (None, None)
     try:
@@ -247,6 +248,9 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--metrics-samples", type=int, default=None, help="samples per side for the surface metrics (default 100k)")
     f.add_argument("--no-skeleton", action="store_true")
     f.add_argument("--no-preview", action="store_true")
+    f.add_argument("--dicom-outputs", action="store_true",
+                   help="a NIfTI label map also gets seg.dcm, measurements_sr.dcm, mesh_stl.dcm (LPS mm) on a "
+                        "generated CT study, study_ct.zip (a DICOM SEG input gets them anyway)")
     f.add_argument("-q", "--quiet", action="store_true")
     f.set_defaults(func=cmd_fit)
 

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from .dicom.export import DICOM_ARTIFACTS
+from .dicom.nifti_source import STUDY_CT_ARTIFACT
 
 #: artifact file names the pipeline can produce (the service serves exactly these)
 ARTIFACT_NAMES = (
@@ -22,7 +23,7 @@ ARTIFACT_NAMES = (
     "metrics.json",
     "skeleton.json", "skeleton.glb", "skeleton.obj", "scene.glb",
     "preview.png",
-) + DICOM_ARTIFACTS  # the DICOM ones only for DICOM SEG inputs (ribpull_core.dicom.export)
+) + DICOM_ARTIFACTS + (STUDY_CT_ARTIFACT,)  # DICOM ones: DICOM SEG inputs, and NIfTI ones with dicom_outputs
 
 
 @dataclass
@@ -33,7 +34,9 @@ class PipelineOptions:
     method ("sparseocc", "neuralpull", "digs"); iterations / resolution: override the schedule and the
     finest marching-cubes resolution; labels: NIfTI label values to keep; skeleton: also extract the
     medial axis; device: "auto", "cpu" or "cuda"; reference: a mesh or point file to measure against
-    instead of the input; metrics_samples: samples per side for the surface metrics.
+    instead of the input; metrics_samples: samples per side for the surface metrics; dicom_outputs:
+    a NIfTI label map also gets the DICOM outputs (seg.dcm, measurements_sr.dcm, mesh_stl.dcm, in LPS)
+    on a generated CT study (study_ct.zip); a DICOM SEG input gets them anyway; a point cloud is refused.
     """
 
     preset: str = "default"
@@ -50,6 +53,7 @@ class PipelineOptions:
     max_points: int = 2_000_000
     max_file_bytes: int = 512 * 1024 * 1024
     units: str = "mm"
+    dicom_outputs: bool = False
 
 
 @dataclass
@@ -235,6 +239,11 @@ def run_pipeline(
         with timed("load"):
             cloud = load_point_cloud(Path(input_path), labels=options.labels, max_points=options.max_points,
                                      max_file_bytes=options.max_file_bytes, units=options.units)
+            generated_study = None
+            if options.dicom_outputs and cloud.dicom_source is None:  # a DICOM SEG input has its own study
+                from .dicom.nifti_source import GeneratedStudy
+
+                generated_study = GeneratedStudy.from_label_cloud(cloud)  # refuses a point cloud
             if cloud.nifti_affine is not None:
                 # a label map's voxel centres fill the solid: fit (and score against) its boundary
                 lm = fit_config.label_map
@@ -266,6 +275,8 @@ def run_pipeline(
                 from .dicom.export import write_dicom_outputs
 
                 artifacts.update(write_dicom_outputs(tmp, cloud, mesh, *sdf, metrics))
+            elif generated_study is not None:  # a NIfTI input: the same objects on its generated CT, in LPS
+                artifacts.update(generated_study.write_outputs(tmp, cloud, mesh, *sdf, metrics))
         metrics["timings_s"] = {**timings, "total": round(time.perf_counter() - t_all, 3)}
         metrics["device"] = str(device)
         metrics["torch_threads"] = threads

@@ -169,6 +169,7 @@ def _pipeline_options(params: dict, settings: Settings):
         labels=params.get("labels"),
         skeleton=bool(params.get("skeleton", True)),
         preview=bool(params.get("preview", True)),
+        dicom_outputs=bool(params.get("dicom_outputs", False)),
         device=settings.device,
         seed=int(params.get("seed") or 0),
         max_points=settings.max_points,

@@ -261,6 +261,10 @@ def validate_input(path, params: JobParams, settings: Settings):
             units=params.units, max_nifti_bytes=settings.max_nifti_bytes,
         )
         check_extent(cloud.points, params.units, settings)
+        if params.dicom_outputs:  # DICOM images need a voxel grid: refuse a point cloud before queuing
+            from ribpull_core.dicom.nifti_source import require_voxel_grid
+
+            require_voxel_grid(cloud)
         return cloud
     except ProblemError:
         raise

@@ -2,8 +2,9 @@
 
 Modules: `ribs` (rib names and coded concepts), `seg_read` (a DICOM SEG -> the label-map point cloud
 the pipeline fits, in mm in the LPS patient frame), `seg_write` / `sr` / `stl` (the three result
-objects), `export` (all three from a finished fit), `synthetic` (a CT series and a rib SEG of a label
-map, for tests and demos). DICOM patient coordinates are LPS (+x left, +y posterior, +z head);
+objects), `export` (all three from a finished fit), `nifti_source` (a generated CT study for a NIfTI
+input's DICOM outputs, converted from its RAS fit to LPS), `synthetic` (a CT series and a rib SEG of
+a label map, for tests, demos and `nifti_source`). DICOM patient coordinates are LPS (+x left, +y posterior, +z head);
 nibabel's NIfTI world is RAS: (x, y, z)_LPS = (-x, -y, z)_RAS.
 """
 

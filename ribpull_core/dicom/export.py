@@ -1,7 +1,9 @@
 """All DICOM outputs of a finished fit of a DICOM input: seg.dcm, measurements_sr.dcm, mesh_stl.dcm.
 
 Called by the pipeline's export stage when the input was a DICOM SEG (cloud.dicom_source set); every
-coordinate is already in the source's LPS patient frame (mm), because the fit ran in it.
+coordinate is already in the source's LPS patient frame (mm), because the fit ran in it. A NIfTI input
+with dicom_outputs comes through `nifti_source.GeneratedStudy.write_outputs`, which converts its RAS
+fit to LPS first and passes its generated CT study as the source.
 """
 
 from __future__ import annotations
@@ -40,6 +42,7 @@ def write_dicom_outputs(outdir: str | Path, cloud, mesh, sdf_mm: np.ndarray, sdf
     cloud: the fitted cloud (labels, label_names, dicom_source); mesh: the reconstruction (trimesh,
     LPS mm); sdf_mm / sdf_affine: the signed distance volume on the source grid (voxel -> LPS mm);
     metrics: the pipeline's metrics (skeleton curves, surface)."""
+    from .ribs import rib_name
     from .seg_write import segment_numbers_for, write_rib_seg
     from .sr import write_measurement_report
     from .stl import write_encapsulated_stl
@@ -47,7 +50,8 @@ def write_dicom_outputs(outdir: str | Path, cloud, mesh, sdf_mm: np.ndarray, sdf
     outdir = Path(outdir)
     source = cloud.dicom_source
     labels = np.unique(cloud.labels) if cloud.labels is not None else np.array([1])
-    names = {int(v): cloud.label_names.get(int(v), f"segment_{int(v)}") for v in labels}
+    # rib segments are named "L7" whatever the input called them (a NIfTI's "rib_left_7"), as the skeleton does
+    names = {int(v): rib_name(cloud.label_names.get(int(v), f"segment_{int(v)}")) for v in labels}
     numbers = segment_numbers_for(names)
     volume = rib_segment_volume(sdf_mm, sdf_affine, cloud, numbers)
     paths = {name: outdir / name for name in DICOM_ARTIFACTS}

@@ -34,6 +34,12 @@ def rib_side_number(name: str) -> tuple[str, int] | None:
     return m.group(1), int(m.group(2))
 
 
+def rib_name(name: str) -> str:
+    """"rib_left_7" (or "L7", "left rib 7") -> "L7"; names that are no rib come back as is."""
+    sn = rib_side_number(name)
+    return str(name) if sn is None else f"{sn[0]}{sn[1]}"
+
+
 def totalseg_class_name(name: str) -> str:
     """"L7" -> "rib_left_7" (TotalSegmentator's class name); names that are no rib come back as is."""
     sn = rib_side_number(name)

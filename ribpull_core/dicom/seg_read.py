@@ -63,6 +63,11 @@ class SegSource:
     def frame_of_reference_uid(self) -> str:
         return str(self.header.FrameOfReferenceUID)
 
+    @property
+    def source_images(self) -> list:
+        """The images an output SEG is derived from: the input SEG itself."""
+        return [self.header]
+
 
 def load_seg(path: str | Path, labels: list[int] | None, max_points: int,
              max_voxel_bytes: int = 1024**3) -> PointCloud:

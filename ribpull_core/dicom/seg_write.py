@@ -34,7 +34,8 @@ def write_rib_seg(path: str | Path, source, segment_volume: np.ndarray, affine_l
                   segment_names: dict[int, str], series_number: int = 901):
     """Write the SEG of `segment_volume` ((slices, rows, columns) uint16 segment numbers, 0 = none;
     affine_lps: voxel (slice, row, column) -> LPS mm) to `path`; segment_names: number -> name.
-    source: the input's SegSource. Returns the written highdicom Segmentation."""
+    source: the input's SegSource (or a NIfTI input's GeneratedStudy). Returns the written highdicom
+    Segmentation."""
     import highdicom as hd
 
     present = sorted(int(v) for v in np.unique(segment_volume) if v)
@@ -46,7 +47,7 @@ def write_rib_seg(path: str | Path, source, segment_volume: np.ndarray, affine_l
     volume = hd.Volume(array=remap[segment_volume], affine=np.asarray(affine_lps, dtype=np.float64),
                        coordinate_system="PATIENT", frame_of_reference_uid=source.frame_of_reference_uid)
     seg = hd.seg.Segmentation(
-        source_images=[source.header], pixel_array=volume, segmentation_type="BINARY",
+        source_images=source.source_images, pixel_array=volume, segmentation_type="BINARY",
         segment_descriptions=descriptions, series_instance_uid=generate_uid(), series_number=series_number,
         sop_instance_uid=generate_uid(), instance_number=1, manufacturer=MANUFACTURER,
         manufacturer_model_name=MODEL_NAME, software_versions=SOFTWARE_VERSION, device_serial_number="0",

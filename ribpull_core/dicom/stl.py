@@ -3,6 +3,8 @@
 The STL bytes are the mesh in the LPS patient coordinates of the source (mm), so the model overlays
 the CT; the instance shares the source's patient, study and frame of reference, and references the
 input SEG and its source series (e.g. the CT) through SourceInstanceSequence / ReferencedSeriesSequence.
+For a NIfTI input the source is its generated study (nifti_source.GeneratedStudy): the STL is derived
+from the first generated CT slice and references the generated CT series.
 """
 
 from __future__ import annotations
@@ -57,11 +59,12 @@ def write_encapsulated_stl(path: str | Path, source, mesh, series_number: int = 
     from .seg_write import add_source_series_references
 
     add_source_series_references(ds, source)
-    item = Dataset()  # ... and the input SEG's own series first
-    item.SeriesInstanceUID = source.series_uid
-    inst = Dataset()
-    inst.ReferencedSOPClassUID, inst.ReferencedSOPInstanceUID = ref.ReferencedSOPClassUID, ref.ReferencedSOPInstanceUID
-    item.ReferencedInstanceSequence = Sequence([inst])
-    ds.ReferencedSeriesSequence.insert(0, item)
+    if source.series_uid not in {str(s.SeriesInstanceUID) for s in ds.ReferencedSeriesSequence}:
+        item = Dataset()  # ... and the input SEG's own series first (a generated CT is listed already)
+        item.SeriesInstanceUID = source.series_uid
+        inst = Dataset()
+        inst.ReferencedSOPClassUID, inst.ReferencedSOPInstanceUID = ref.ReferencedSOPClassUID, ref.ReferencedSOPInstanceUID
+        item.ReferencedInstanceSequence = Sequence([inst])
+        ds.ReferencedSeriesSequence.insert(0, item)
     ds.save_as(str(path), enforce_file_format=True)
     return ds

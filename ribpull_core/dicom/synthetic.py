@@ -26,7 +26,7 @@ TISSUE_HU = 40
 
 
 def ct_series_from_labels(labels: np.ndarray, affine_ras: np.ndarray, *, patient_id: str = "RIBPULL-PHANTOM",
-                          study_uid: str | None = None) -> list[Dataset]:
+                          patient_name: str = "Phantom^Rib", study_uid: str | None = None) -> list[Dataset]:
     """(X, Y, Z) label volume + its voxel -> RAS mm affine -> Z CT Image datasets (int16 HU, one per
     k), pixel (row j, column i), in the LPS patient frame. The affine's first two columns must be
     orthogonal (any voxel size; the slices may be oblique)."""
@@ -39,7 +39,7 @@ def ct_series_from_labels(labels: np.ndarray, affine_ras: np.ndarray, *, patient
     out = []
     for k in range(labels.shape[2]):
         ds = new_instance(CT_SOP_CLASS_UID)
-        ds.PatientName, ds.PatientID, ds.PatientBirthDate, ds.PatientSex = "Phantom^Rib", patient_id, "", "O"
+        ds.PatientName, ds.PatientID, ds.PatientBirthDate, ds.PatientSex = patient_name, patient_id, "", "O"
         ds.StudyInstanceUID, ds.SeriesInstanceUID, ds.FrameOfReferenceUID = study_uid, series_uid, for_uid
         ds.StudyDate = ds.SeriesDate = ds.ContentDate = today
         ds.StudyTime = ds.SeriesTime = ds.ContentTime = "120000"
