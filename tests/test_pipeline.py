@@ -13,6 +13,7 @@ import trimesh
 
 from ribpull_core.cli import main as cli_main
 from ribpull_core.dicom.export import DICOM_ARTIFACTS
+from ribpull_core.dicom.nifti_source import STUDY_CT_ARTIFACT
 from ribpull_core.errors import JobCanceled, RibPullInputError
 from ribpull_core.io import write_point_cloud
 from ribpull_core.phantom import PhantomConfig, make_phantom, sample_surface
@@ -45,7 +46,7 @@ def fitted(small_phantom, tmp_path_factory):
 def test_pipeline_writes_every_artifact_in_mm(fitted, small_phantom):
     result, seen = fitted
     phantom, _ = small_phantom
-    assert set(result.artifacts) == set(ARTIFACT_NAMES) - set(DICOM_ARTIFACTS)  # a point cloud: no DICOM out
+    assert set(result.artifacts) == set(ARTIFACT_NAMES) - {*DICOM_ARTIFACTS, STUDY_CT_ARTIFACT}  # a point cloud: no DICOM out
     for name in result.artifacts:
         assert (result.outdir / name).stat().st_size > 0, name
     mesh = trimesh.load(result.outdir / "mesh.ply", force="mesh")
