@@ -10,6 +10,8 @@ flag refused at submission.
 from __future__ import annotations
 
 import io
+import shutil
+import subprocess
 import zipfile
 from pathlib import Path
 
@@ -166,6 +168,15 @@ def test_nifti_outputs_stay_in_ras(fitted, phantom_nifti):
     import nibabel as nib
 
     assert np.allclose(nib.load(fitted / "sdf.nii.gz").affine, nib.load(phantom_nifti).affine)
+
+
+@pytest.mark.skipif(shutil.which("dcmdump") is None, reason="dcmdump (Debian package dcmtk) is not installed")
+def test_outputs_and_a_ct_slice_parse_with_dcmtk(fitted, tmp_path):
+    with zipfile.ZipFile(fitted / "study_ct.zip") as zf:
+        (tmp_path / "ct_0001.dcm").write_bytes(zf.read("ct_0001.dcm"))
+    for path in [fitted / n for n in DICOM_OUTPUTS[:3]] + [tmp_path / "ct_0001.dcm"]:
+        r = subprocess.run(["dcmdump", "-q", "+E", str(path)], check=False, capture_output=True, text=True, timeout=60)
+        assert r.returncode == 0 and "E:" not in r.stderr, (path.name, r.stderr[-2000:])
 
 
 def test_dicom_outputs_of_a_point_cloud_are_refused(sample_ply, tmp_path):
