@@ -42,7 +42,7 @@ def _monomials(u: np.ndarray, v: np.ndarray) -> np.ndarray:
 
 
 def fit_local_quadrics(points: np.ndarray, k: int = 20, chunk: int = 25_000,
-                       normals: np.ndarray | None = None) -> LocalQuadrics:
+                       normals: np.ndarray | None = None, tree: cKDTree | None = None) -> LocalQuadrics:
     """(N, 3) points -> one quadric patch per point over its k nearest neighbours (itself included).
 
     normals: optional (N, 3) consistently oriented normals; a patch is `one_sided` when all its
@@ -51,11 +51,11 @@ def fit_local_quadrics(points: np.ndarray, k: int = 20, chunk: int = 25_000,
 
     Weights exp(-(u^2 + v^2) / r^2), r the distance to the k-th neighbour, favour the near samples;
     a tiny ridge keeps degenerate neighbourhoods (collinear samples) solvable. `chunk` points are
-    fitted at a time to bound memory (~chunk x k x 36 floats)."""
+    fitted at a time to bound memory (~chunk x k x 36 floats). tree: a kd-tree of `points` to reuse."""
     pts = np.asarray(points, dtype=np.float64)
     n = len(pts)
     k = int(min(max(k, 6), n))
-    dist, nn = cKDTree(pts).query(pts, k=k, workers=-1)
+    dist, nn = (tree if tree is not None else cKDTree(pts)).query(pts, k=k, workers=-1)
     centre = np.empty((n, 3))
     frame = np.empty((n, 3, 3))
     coef = np.empty((n, 6))

@@ -158,6 +158,8 @@ def _on_process_init(**_kw) -> None:
     db._engines.clear()
     try:
         configure_torch()
+        import torch._dynamo  # noqa: F401 - the first torch.optim optimizer imports it (~3-4 s a job)
+
         import ribpull_core.pipeline  # noqa: F401 - warm the import before the first job
     except Exception as exc:  # noqa: BLE001 - the task reports import errors per job
         log.error("warm-up import failed: %s", exc)

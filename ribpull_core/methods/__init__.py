@@ -25,9 +25,12 @@ METHOD_CLASSES = {
     "digs": "ribpull_core.methods.digs:DiGS",
 }
 
-#: run preset -> (default method, finest marching-cubes resolution, label-map handling)
+#: run preset -> (default method, finest marching-cubes resolution, label-map handling). default
+#: meshes at 256 cells, about half a cell of its field's finest grid level at 60k points: 384 was
+#: as accurate (60k / 0.3 mm points CD-L1 0.425 vs 0.423 mm, 1.5 mm label map 0.433 both, 20k
+#: 0.545 vs 0.540, 5k 1.461 vs 1.454; 300k samples) and took 3x the mesh stage (8.4 -> 2.4 s at 60k)
 RUN_PRESETS = {
-    "default": ("sparseocc", 384, LabelMapConfig(boundary_sigma_mm=LABEL_MAP_SIGMA_MM, band_voxels=2.0)),
+    "default": ("sparseocc", 256, LabelMapConfig(boundary_sigma_mm=LABEL_MAP_SIGMA_MM, band_voxels=2.0)),
     "paper": ("sparseocc", 256, LabelMapConfig()),
     "smoke": ("sparseocc", 64, LabelMapConfig(boundary_sigma_mm=LABEL_MAP_SIGMA_MM, band_voxels=2.0)),
 }

@@ -246,21 +246,34 @@ def outside_mask(points_unit: np.ndarray, block_factor: float = 1.0, max_cells: 
     spacing = max(block / 2.0, float((hi - lo).max() + 8 * block) / max_cells)
     origin = lo - 3 * block
     shape = np.ceil((hi - lo + 6 * block) / spacing).astype(int) + 1
-    hit = np.zeros(shape, bool)
-    ijk = np.clip(np.round((points_unit - origin) / spacing).astype(int), 0, shape - 1)
-    hit[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = True
-    # distance from each voxel centre to the nearest voxel holding a point (+ half a voxel of slack)
-    blocked = ndimage.distance_transform_edt(~hit) * spacing <= block + 0.5 * spacing
+    ijk = np.unique(np.clip(np.round((points_unit - origin) / spacing).astype(int), 0, shape - 1), axis=0)
+    # voxels whose centre lies within block + half a voxel of slack of a voxel holding a point: a
+    # ball stamped around each such voxel (the same set as thresholding a distance transform of
+    # the whole volume, for a fraction of its cost: the points occupy few voxels)
+    blocked = np.zeros(shape, bool)
+    for offset in _ball_offsets(block / spacing + 0.5):
+        cells = np.clip(ijk + offset, 0, shape - 1)
+        blocked[cells[:, 0], cells[:, 1], cells[:, 2]] = True
     labels, _ = ndimage.label(~blocked)
     border = np.unique(np.concatenate([labels[[0, -1]].ravel(), labels[:, [0, -1]].ravel(), labels[:, :, [0, -1]].ravel()]))
     outside = np.isin(labels, border[border > 0])
     return outside, blocked, spacing, origin - 0.5 * spacing
 
 
-def oriented_normals(points_unit: np.ndarray, outside: np.ndarray, spacing: float, origin: np.ndarray, k: int = 16) -> np.ndarray:
+def _ball_offsets(radius: float) -> np.ndarray:
+    """(M, 3) integer offsets of the voxels whose centres lie within `radius` (voxels) of the origin."""
+    r = int(np.floor(radius))
+    grid = np.stack(np.meshgrid(*[np.arange(-r, r + 1)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    return grid[(grid**2).sum(1) <= radius * radius]
+
+
+def oriented_normals(points_unit: np.ndarray, outside: np.ndarray, spacing: float, origin: np.ndarray, k: int = 16,
+                     tree: cKDTree | None = None) -> np.ndarray:
     """(N, 3) unit normals by PCA over k neighbours, flipped to point towards the flood-filled outside
-    (the gradient of a smoothed outside indicator). This orients the unoriented input from the data."""
-    _, nn = cKDTree(points_unit).query(points_unit, k=min(k, len(points_unit)))
+    (the gradient of a smoothed outside indicator). This orients the unoriented input from the data.
+    tree: a kd-tree of `points_unit` to reuse."""
+    tree = tree if tree is not None else cKDTree(points_unit)
+    _, nn = tree.query(points_unit, k=min(k, len(points_unit)), workers=-1)
     nb = points_unit[nn] - points_unit[nn].mean(axis=1, keepdims=True)
     _, _, vt = np.linalg.svd(nb, full_matrices=False)
     normals = vt[:, -1, :]
@@ -273,22 +286,24 @@ def oriented_normals(points_unit: np.ndarray, outside: np.ndarray, spacing: floa
 
 
 def space_labels(points_unit: np.ndarray, rng: np.random.Generator, n_free: int = 400_000,
-                 offset_fraction: float = 0.5) -> SpaceLabels:
-    """Free-space points (half near the surface, within 4 voxels of the dilated input, half anywhere
-    outside) and near-surface inside/outside pairs at +-offset along the oriented normals, with
-    offset = offset_fraction x the flood-fill spacing (a length derived from the sampling density)."""
+                 offset_fraction: float = 0.5, tree: cKDTree | None = None) -> SpaceLabels:
+    """Free-space points (half near the surface, within 8 voxels (L1) of the dilated input, half
+    anywhere outside) and near-surface inside/outside pairs at +-offset along the oriented normals,
+    with offset = offset_fraction x the flood-fill spacing (a length derived from the sampling
+    density). tree: a kd-tree of `points_unit` to reuse."""
     outside, blocked, spacing, origin = outside_mask(points_unit)
+    tree = tree if tree is not None else cKDTree(points_unit)
     near = outside & ndimage.binary_dilation(blocked, iterations=8)
     pools = []
     for mask, n in ((near, n_free // 2), (outside, n_free - n_free // 2)):
-        cells = np.argwhere(mask)
+        cells = np.flatnonzero(mask)  # flat indices: the voxels of millions are not all unravelled
         if len(cells):
-            pick = cells[rng.integers(0, len(cells), n)]
+            pick = np.stack(np.unravel_index(cells[rng.integers(0, len(cells), n)], mask.shape), axis=1)
             pools.append(origin + (pick + rng.random((n, 3))) * spacing)
     free = np.concatenate(pools).astype(np.float32) if pools else np.zeros((0, 3), np.float32)
-    normals = oriented_normals(points_unit, outside, spacing, origin)
+    normals = oriented_normals(points_unit, outside, spacing, origin, tree=tree)
     offset = offset_fraction * 2 * spacing  # in units of the blocking radius (2 voxels)
-    free_distance = cKDTree(points_unit).query(free, k=1, workers=-1)[0].astype(np.float32) if len(free) else np.zeros(0, np.float32)
+    free_distance = tree.query(free, k=1, workers=-1)[0].astype(np.float32) if len(free) else np.zeros(0, np.float32)
     return SpaceLabels(free, free_distance, (points_unit - offset * normals).astype(np.float32),
                        (points_unit + offset * normals).astype(np.float32), spacing, offset, normals)
 
@@ -393,14 +408,16 @@ class SparseOcc(Method):
         if cfg.queries.outlier_gap_factor > 0:
             pts = drop_isolated_points(pts, cfg.queries.outlier_gap_factor)
         self.points = pts
-        queries, nearest = self._queries(pts, rng)
+        gap = sampling_gap(pts)
+        tree = cKDTree(pts)
+        queries, nearest = self._queries(pts, rng, tree)
         self.q_all = torch.from_numpy(queries).to(device)
         self.pts_t = torch.from_numpy(pts.astype(np.float32)).to(device)
         s = cfg.sign
         self.free = self.near = None
         labels = None
         if s.free_space_weight > 0 or s.near_surface_weight > 0:
-            labels = space_labels(pts, rng, offset_fraction=s.near_surface_offset)
+            labels = space_labels(pts, rng, offset_fraction=s.near_surface_offset, tree=tree)
             if s.free_space_weight > 0 and len(labels.free):
                 self.free = torch.from_numpy(labels.free).to(device)
                 # hinge margins: half the distance to the data (capped) and half the normal offset
@@ -410,7 +427,7 @@ class SparseOcc(Method):
                 self.near_margin = 0.5 * labels.offset
         target_kind = cfg.queries.label_map_targets if known is not None else cfg.queries.targets
         normals = labels.normals if labels is not None else None
-        self.target_all = torch.from_numpy(self._pull_targets(pts, queries, nearest, target_kind, normals)).to(device)
+        self.target_all = torch.from_numpy(self._pull_targets(pts, queries, nearest, target_kind, gap, tree, normals)).to(device)
         self.known = None
         if known is not None and s.known_weight > 0 and len(known.points):
             self.known = torch.from_numpy(np.asarray(known.points, np.float32)).to(device)
@@ -421,7 +438,7 @@ class SparseOcc(Method):
         self.lo = torch.from_numpy(pts.min(0).astype(np.float32)).to(device) - 0.05
         self.hi = torch.from_numpy(pts.max(0).astype(np.float32)).to(device) + 0.05
         self.grid = cfg.field.network == "grid"
-        self.resolution = field_resolution(cfg.field, sampling_gap(pts), self.known is not None) if self.grid else None
+        self.resolution = field_resolution(cfg.field, gap, self.known is not None) if self.grid else None
         self.fd_step = cfg.queries.fd_step
         self.gen = torch.Generator(device=device).manual_seed(cfg.seed)
 
@@ -504,27 +521,27 @@ class SparseOcc(Method):
             return classification_level(u, self.known_inside.cpu().numpy())
         return float(np.median(fitted.evaluate(self.points.astype(np.float32))["U"]))
 
-    def _pull_targets(self, pts: np.ndarray, queries: np.ndarray, nearest: np.ndarray, kind: str,
-                      normals: np.ndarray | None = None) -> np.ndarray:
+    def _pull_targets(self, pts: np.ndarray, queries: np.ndarray, nearest: np.ndarray, kind: str, gap: float,
+                      tree: cKDTree, normals: np.ndarray | None = None) -> np.ndarray:
         """(Q, 3) float32 eq. 1 targets: the nearest input points ("nearest"), or their local
         quadric patches under the queries ("quadric"). With oriented `normals` (N, 3), a patch whose
         neighbours do not all face its point's way (it spans both sides of a thin rib: sparse input)
-        is not used: its queries keep their nearest point."""
+        is not used: its queries keep their nearest point. gap: the points' sampling gap; tree: a
+        kd-tree of `pts`."""
         qc = self.config.queries
         if kind == "nearest":
             return pts[nearest].astype(np.float32)
         if kind != "quadric":
             raise ValueError(f"unknown pull targets {kind!r}: 'nearest' or 'quadric'")
-        patches = fit_local_quadrics(pts, qc.target_knn, normals=normals)
+        patches = fit_local_quadrics(pts, qc.target_knn, normals=normals, tree=tree)
         return project_onto_quadrics(queries, nearest, patches, fallback=pts[nearest],
-                                     max_shift=qc.target_max_shift * sampling_gap(pts)).astype(np.float32)
+                                     max_shift=qc.target_max_shift * gap).astype(np.float32)
 
-    def _queries(self, pts: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-        """Neural-Pull queries, split evenly over `queries.scales`."""
+    def _queries(self, pts: np.ndarray, rng: np.random.Generator, tree: cKDTree) -> tuple[np.ndarray, np.ndarray]:
+        """Neural-Pull queries, split evenly over `queries.scales` (tree: a kd-tree of `pts`)."""
         qc = self.config.queries
         base = 0.25 * math.sqrt(len(pts) / 20000.0)
         per = qc.n_queries // len(qc.scales)
-        tree = cKDTree(pts)
         sigma = knn_sigma(pts, qc.knn)
         qs, nn = zip(*(sample_pull_queries(pts, per, rng, k=qc.knn, scale=base * s, sigma=sigma, tree=tree)
                        for s in qc.scales))
