@@ -26,6 +26,7 @@ import numpy as np
 
 from ..errors import RibPullInputError
 from . import CT_SOP_CLASS_UID, LPS_FROM_RAS
+from .instance import SourceUids
 
 #: the generated CT series, one DICOM file per slice (ct_0001.dcm ...), as a job artifact
 STUDY_CT_ARTIFACT = "study_ct.zip"
@@ -50,7 +51,7 @@ def require_voxel_grid(cloud) -> None:
 
 
 @dataclasses.dataclass
-class GeneratedStudy:
+class GeneratedStudy(SourceUids):
     """A synthetic CT study on a label map's grid; stands where a DICOM SEG input's SegSource stands
     for the writers (header, referenced_series, study / series / frame-of-reference UIDs).
 
@@ -98,22 +99,6 @@ class GeneratedStudy:
     def source_images(self) -> list:
         """Every CT slice: the images the output SEG is derived from."""
         return self.ct
-
-    @property
-    def study_uid(self) -> str:
-        return str(self.header.StudyInstanceUID)
-
-    @property
-    def series_uid(self) -> str:
-        return str(self.header.SeriesInstanceUID)
-
-    @property
-    def sop_instance_uid(self) -> str:
-        return str(self.header.SOPInstanceUID)
-
-    @property
-    def frame_of_reference_uid(self) -> str:
-        return str(self.header.FrameOfReferenceUID)
 
     def write_ct_zip(self, path: str | Path) -> Path:
         """The CT slices as DICOM files (ct_0001.dcm ...) in a deflated zip; returns the path."""

@@ -24,6 +24,7 @@ import numpy as np
 from ..errors import RibPullInputError
 from ..pointcloud import PointCloud
 from . import SEG_SOP_CLASS_UID
+from .instance import SourceUids
 from .ribs import RIB_CODE, rib_side_number
 
 #: attributes copied from the source SEG into every object RibPull writes for it
@@ -34,7 +35,7 @@ PATIENT_STUDY_KEYWORDS = (
 
 
 @dataclass
-class SegSource:
+class SegSource(SourceUids):
     """What the DICOM outputs need to know about the input SEG.
 
     header: the SEG's dataset without its pixel data (patient, study, frame of reference, segments).
@@ -46,22 +47,6 @@ class SegSource:
     header: object
     referenced_series: list[tuple[str, list[tuple[str, str]]]] = field(default_factory=list)
     segment_names: dict[int, str] = field(default_factory=dict)
-
-    @property
-    def study_uid(self) -> str:
-        return str(self.header.StudyInstanceUID)
-
-    @property
-    def series_uid(self) -> str:
-        return str(self.header.SeriesInstanceUID)
-
-    @property
-    def sop_instance_uid(self) -> str:
-        return str(self.header.SOPInstanceUID)
-
-    @property
-    def frame_of_reference_uid(self) -> str:
-        return str(self.header.FrameOfReferenceUID)
 
     @property
     def source_images(self) -> list:
