@@ -23,12 +23,13 @@ import orthanckit
 import pydicom
 import pytest
 import servicekit
+import shareddata
 
 from ribpull_core.dicom import ENCAPSULATED_STL_SOP_CLASS_UID, SEG_SOP_CLASS_UID
 
 pytestmark = pytest.mark.service
 
-TOTALSEG = Path(__file__).resolve().parents[2] / "shared" / "data" / "totalseg_example_seg.nii.gz"
+TOTALSEG = shareddata.TOTALSEG_EXAMPLE
 RIBS = [f"L{i}" for i in range(1, 13)] + [f"R{i}" for i in range(1, 13)]
 SMOKE = {"preset": "smoke", "preview": False}
 SR_SOP_CLASS_UID = "1.2.840.10008.5.1.4.1.1.88.34"

@@ -8,6 +8,7 @@ from pathlib import Path
 import nibabel as nib
 import numpy as np
 import pytest
+import shareddata
 
 from ribpull_core.errors import RibPullInputError
 from ribpull_core.io import (
@@ -18,7 +19,7 @@ from ribpull_core.io import (
 )
 from ribpull_core.pointcloud import PointCloud
 
-TOTALSEG_EXAMPLE = Path("/work/shared/data/totalseg_example_seg.nii.gz")
+TOTALSEG_EXAMPLE = shareddata.TOTALSEG_EXAMPLE
 
 
 # ----------------------------------------------------------------------------------------------

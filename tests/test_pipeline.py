@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import nibabel as nib
 import numpy as np
 import pygltflib
 import pytest
+import shareddata
 import trimesh
 
 from ribpull_core.cli import main as cli_main
@@ -20,7 +20,7 @@ from ribpull_core.phantom import PhantomConfig, make_phantom, sample_surface
 from ribpull_core.pipeline import ARTIFACT_NAMES, PipelineOptions, run_pipeline
 from ribpull_core.weights import load_field
 
-TOTALSEG = Path(__file__).resolve().parents[2] / "shared" / "data" / "totalseg_example_seg.nii.gz"
+TOTALSEG = shareddata.TOTALSEG_EXAMPLE
 FOUR_RIBS = tuple(f"{s}{n}" for s in "LR" for n in range(1, 13) if n not in (5, 6))  # keep L5 L6 R5 R6
 
 
