@@ -147,3 +147,23 @@ def test_cli_fit_and_phantom(tmp_path, capsys):
                                       "property float z\nend_header\n0 0 0\n")
     assert cli_main(["fit", str(tmp_path / "bad.ply"), "-o", str(tmp_path / "x"), "-q"]) == 2
     assert "header" in capsys.readouterr().err
+
+
+def test_one_thread_count_for_torch_and_the_grid_kernels():
+    """RIBPULL_TORCH_THREADS (or the argument) sets both pools: torch's and numba's, whose kernels
+    train the hash grid; one left at all cores oversubscribes a machine shared by several workers."""
+    import numba
+    import torch
+
+    from ribpull_core.pipeline import configure_torch_threads
+
+    before_torch, before_numba = torch.get_num_threads(), numba.get_num_threads()
+    try:
+        assert configure_torch_threads(1) == 1
+        assert (torch.get_num_threads(), numba.get_num_threads()) == (1, 1)
+        full = numba.config.NUMBA_NUM_THREADS
+        configure_torch_threads(full + 5)  # more than numba's pool: numba keeps its whole pool
+        assert numba.get_num_threads() == full
+    finally:
+        torch.set_num_threads(before_torch)
+        numba.set_num_threads(before_numba)
