@@ -189,6 +189,25 @@ def test_dicom_outputs_of_a_point_cloud_are_refused(sample_ply, tmp_path):
     assert not (tmp_path / "out").exists()
 
 
+def test_dicom_outputs_of_a_sheared_grid_are_refused(phantom_nifti, tmp_path):
+    """DICOM rows and columns are perpendicular: a label map whose first two voxel axes are not
+    fails at load with dicom_outputs_bad_grid, before any fitting, and writes nothing."""
+    import nibabel as nib
+
+    from ribpull_core.pipeline import PipelineOptions, run_pipeline
+
+    img = nib.load(phantom_nifti)
+    affine = img.affine.copy()
+    affine[:3, 1] += 0.5 * affine[:3, 0]  # the column axis leans on the row axis
+    sheared = tmp_path / "sheared.nii.gz"
+    nib.save(nib.Nifti1Image(np.asarray(img.dataobj), affine), sheared)
+    with pytest.raises(RibPullInputError) as info:
+        run_pipeline(sheared, tmp_path / "out", PipelineOptions(**FIT, dicom_outputs=True))
+    assert info.value.code == "dicom_outputs_bad_grid"
+    assert "perpendicular" in info.value.message
+    assert not (tmp_path / "out").exists()
+
+
 def test_cli_flag(phantom_nifti):
     from ribpull_core.cli import build_parser
 
