@@ -60,13 +60,15 @@ class PointCloud:
         return self.points.min(axis=0), self.points.max(axis=0)
 
 
-def sampling_gap(points: np.ndarray, k: int = 8) -> float:
+def sampling_gap(points: np.ndarray, k: int = 8, tree=None) -> float:
     """Median distance from a point of (N, 3) `points` to its k-th neighbour (the points' units),
-    over a strided sample of at most ~50k points: the input's sampling gap."""
+    over a strided sample of at most ~50k points: the input's sampling gap. tree: a
+    scipy cKDTree of `points` to reuse."""
     from scipy.spatial import cKDTree
 
     sample = points[:: max(1, len(points) // 50_000)]
-    d, _ = cKDTree(points).query(sample, k=min(k + 1, len(points)), workers=-1)
+    tree = tree if tree is not None else cKDTree(points)
+    d, _ = tree.query(sample, k=min(k + 1, len(points)), workers=-1)
     return float(np.median(d[:, -1]))
 
 

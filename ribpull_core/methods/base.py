@@ -194,10 +194,11 @@ def warmup_cosine_lr(iteration: int, total: int, base_lr: float, warmup: int, fi
     return base_lr * (final_ratio + (1 - final_ratio) * 0.5 * (1 + math.cos(math.pi * t)))
 
 
-def knn_sigma(points: np.ndarray, k: int = 50) -> np.ndarray:
-    """(N,) distance from each point to its k-th nearest neighbour (Neural-Pull's local scale)."""
+def knn_sigma(points: np.ndarray, k: int = 50, tree: cKDTree | None = None) -> np.ndarray:
+    """(N,) distance from each point to its k-th nearest neighbour (Neural-Pull's local scale);
+    tree: a kd-tree of `points` to reuse."""
     k = int(min(k, len(points) - 1))
-    d, _ = cKDTree(points).query(points, k=k + 1, workers=-1)
+    d, _ = (tree if tree is not None else cKDTree(points)).query(points, k=k + 1, workers=-1)
     return d[:, -1]
 
 

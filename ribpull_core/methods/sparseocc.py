@@ -229,7 +229,7 @@ class SpaceLabels:
     normals: np.ndarray
 
 
-def outside_mask(points_unit: np.ndarray, block_factor: float = 1.0, max_cells: int = 384
+def outside_mask(points_unit: np.ndarray, block_factor: float = 1.0, max_cells: int = 384, gap: float | None = None
                  ) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
     """Flood-fill the empty space around the points; returns (outside (X,Y,Z) bool, blocked bool,
     spacing, origin (3,)).
@@ -237,11 +237,11 @@ def outside_mask(points_unit: np.ndarray, block_factor: float = 1.0, max_cells: 
     A voxel is blocked when it lies within r = block_factor x (median distance to the 8th neighbour)
     of an input point: r closes the gaps between neighbouring samples, so the blocked shell has no
     holes, yet stays thin enough that narrow gaps between ribs stay open. Voxels are r/2 wide (at
-    most max_cells along the longest side). Every voxel reached from the border of a padded box
+    most max_cells along the longest side; gap: that median distance, when the caller has it). Every voxel reached from the border of a padded box
     without crossing the shell is outside. Cavities (rib interiors) are never reached, so they are
     never labelled.
     """
-    block = block_factor * sampling_gap(points_unit)
+    block = block_factor * (gap if gap is not None else sampling_gap(points_unit))
     lo, hi = points_unit.min(0), points_unit.max(0)
     spacing = max(block / 2.0, float((hi - lo).max() + 8 * block) / max_cells)
     origin = lo - 3 * block
@@ -286,12 +286,12 @@ def oriented_normals(points_unit: np.ndarray, outside: np.ndarray, spacing: floa
 
 
 def space_labels(points_unit: np.ndarray, rng: np.random.Generator, n_free: int = 400_000,
-                 offset_fraction: float = 0.5, tree: cKDTree | None = None) -> SpaceLabels:
+                 offset_fraction: float = 0.5, tree: cKDTree | None = None, gap: float | None = None) -> SpaceLabels:
     """Free-space points (half near the surface, within 8 voxels (L1) of the dilated input, half
     anywhere outside) and near-surface inside/outside pairs at +-offset along the oriented normals,
     with offset = offset_fraction x the flood-fill spacing (a length derived from the sampling
-    density). tree: a kd-tree of `points_unit` to reuse."""
-    outside, blocked, spacing, origin = outside_mask(points_unit)
+    density). tree / gap: a kd-tree of `points_unit` and its sampling gap, to reuse."""
+    outside, blocked, spacing, origin = outside_mask(points_unit, gap=gap)
     tree = tree if tree is not None else cKDTree(points_unit)
     near = outside & ndimage.binary_dilation(blocked, iterations=8)
     pools = []
@@ -408,8 +408,8 @@ class SparseOcc(Method):
         if cfg.queries.outlier_gap_factor > 0:
             pts = drop_isolated_points(pts, cfg.queries.outlier_gap_factor)
         self.points = pts
-        gap = sampling_gap(pts)
         tree = cKDTree(pts)
+        gap = sampling_gap(pts, tree=tree)
         queries, nearest = self._queries(pts, rng, tree)
         self.q_all = torch.from_numpy(queries).to(device)
         self.pts_t = torch.from_numpy(pts.astype(np.float32)).to(device)
@@ -417,7 +417,7 @@ class SparseOcc(Method):
         self.free = self.near = None
         labels = None
         if s.free_space_weight > 0 or s.near_surface_weight > 0:
-            labels = space_labels(pts, rng, offset_fraction=s.near_surface_offset, tree=tree)
+            labels = space_labels(pts, rng, offset_fraction=s.near_surface_offset, tree=tree, gap=gap)
             if s.free_space_weight > 0 and len(labels.free):
                 self.free = torch.from_numpy(labels.free).to(device)
                 # hinge margins: half the distance to the data (capped) and half the normal offset
@@ -542,7 +542,7 @@ class SparseOcc(Method):
         qc = self.config.queries
         base = 0.25 * math.sqrt(len(pts) / 20000.0)
         per = qc.n_queries // len(qc.scales)
-        sigma = knn_sigma(pts, qc.knn)
+        sigma = knn_sigma(pts, qc.knn, tree)
         qs, nn = zip(*(sample_pull_queries(pts, per, rng, k=qc.knn, scale=base * s, sigma=sigma, tree=tree)
                        for s in qc.scales))
         return np.concatenate(qs), np.concatenate(nn)
