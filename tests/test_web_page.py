@@ -106,11 +106,13 @@ def row(pg, job_id: str):
     return pg.locator(f'#jobs tbody tr[data-job-id="{job_id}"]')
 
 
-def submit_through_form(pg, path: Path, preset: str = "smoke") -> str:
-    """Submit `path` with the form on `/` and return the new job's id (the newest row)."""
+def submit_through_form(pg, path: Path, preset: str = "smoke", iterations: int | None = None) -> str:
+    """Submit `path` with the form on `/` and return the new job's id (the newest row).
+    `iterations`: typed into the form's iterations field (None leaves it empty: the preset's)."""
     before = set(pg.eval_on_selector_all("#jobs tbody tr", "rows => rows.map(r => r.dataset.jobId)"))
     pg.set_input_files("#file", str(path))
     pg.select_option("#preset", preset)
+    pg.fill("#iterations", "" if iterations is None else str(iterations))
     pg.click("#submit")
     pg.wait_for_function(
         "before => [...document.querySelectorAll('#jobs tbody tr')].some(r => !before.includes(r.dataset.jobId))",
@@ -180,6 +182,11 @@ def test_bad_upload_shows_the_problem_title_and_detail(page, service, tmp_path):
     page.wait_for_selector("#upload-error:not([hidden])")
     assert "labels: '1-x' is not a number or a range like 1-24" in page.inner_text("#upload-error")
     page.fill("#labels", "")
+    page.fill("#iterations", "2.5")
+    page.click("#submit")
+    page.wait_for_function("() => document.getElementById('upload-error').textContent.includes('iterations')")
+    assert "iterations: '2.5' is not a whole number of at least 1" in page.inner_text("#upload-error")
+    page.fill("#iterations", "")
     page.click("#submit")
     page.wait_for_selector("#upload-error .problem-title:not(:text-is('Error'))")
     page.wait_for_selector("#upload-error:not([hidden])")
@@ -194,7 +201,8 @@ def test_submit_watch_view_pick_download_cancel(page, launch_chromium, service, 
 
     # 1. two uploads through the form; the second waits behind the first (one worker) and is canceled
     #    from the list while queued, then its files are deleted from the list
-    job_id = submit_through_form(page, sample_ply)
+    # the watched job runs the long smoke schedule so that its fit outlasts several of the page's 1 s polls
+    job_id = submit_through_form(page, sample_ply, iterations=servicekit.LONG["iterations"])
     queued_id = submit_through_form(page, sample_ply)
     row(page, queued_id).locator("button.cancel").click()
     wait_status(page, f"document.querySelector('#jobs tr[data-job-id=\"{queued_id}\"]').dataset.status",
@@ -204,6 +212,7 @@ def test_submit_watch_view_pick_download_cancel(page, launch_chromium, service, 
         f"() => document.querySelector('#jobs tr[data-job-id=\"{queued_id}\"]').textContent.includes('files deleted')")
     with service.client() as c:
         assert c.get(f"/v1/jobs/{queued_id}").json()["artifacts_deleted"] is True
+        assert c.get(f"/v1/jobs/{job_id}").json()["params"]["iterations"] == servicekit.LONG["iterations"]
 
     # 2. the list shows the running fit (stage, iteration, loss) and its loss curve; then the job's page
     #    while it runs: stage, iteration and the loss curve move

@@ -32,6 +32,12 @@ function formParams() {
   const params = {};
   const preset = document.getElementById('preset').value;
   if (preset) params.preset = preset;
+  const iterations = document.getElementById('iterations').value.trim();
+  if (iterations) {
+    const n = Number(iterations);
+    if (!Number.isInteger(n) || n < 1) throw new Error(`iterations: '${iterations}' is not a whole number of at least 1`);
+    params.iterations = n;
+  }
   const units = document.getElementById('units').value;
   if (units !== 'mm') params.units = units;
   const labels = parseLabels(document.getElementById('labels').value);
@@ -61,7 +67,7 @@ async function submit(ev) {
   try {
     const job = await apiJson('/v1/jobs', { method: 'POST', body });
     state.textContent = `submitted job ${job.id.slice(0, 8)}`;
-    // clear the file (preset, labels and units stay for the next run), unless another was chosen meanwhile
+    // clear the file (preset, iterations, labels and units stay for the next run), unless another was chosen meanwhile
     const input = document.getElementById('file');
     if (input.files[0] === file) input.value = '';
     await refresh();
