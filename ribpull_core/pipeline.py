@@ -259,8 +259,9 @@ def run_pipeline(
                 cloud = mask_boundary_cloud(cloud, seed=options.seed, subvoxel_sigma_mm=lm.boundary_sigma_mm)
             reference, reference_name = _reference_for_metrics(options, cloud)
         with timed("fit"):
+            refine_plan = _plan_refinement(cloud, fit_config, options)
             field, frame = fit_field(cloud, fit_config, device, report)
-        artifacts = _write_surface_artifacts(cloud, field, frame, fit_config, tmp, report, timed)
+        artifacts = _write_surface_artifacts(cloud, field, frame, fit_config, refine_plan, tmp, report, timed)
         mesh = artifacts.pop("_mesh")
         sdf = artifacts.pop("_sdf")
         skeleton = None
@@ -302,8 +303,30 @@ def run_pipeline(
         shutil.rmtree(tmp, ignore_errors=True)
 
 
-def _write_surface_artifacts(cloud, field, frame, fit_config, tmp: Path, report: _Reporter, timed) -> dict:
-    """Mesh (PLY/STL/OBJ/GLB), SDF NIfTI and weights into `tmp`; returns name -> path (+ "_mesh")."""
+def _plan_refinement(cloud, fit_config, options: PipelineOptions):
+    """The input's refine.RefinePlan, or None when the run does not refine (the preset says no, or a
+    label map: its points lie on voxel faces, and patches of them are stairs). A plan that applies
+    shortens the fit to the refinement's fit_iterations (never lengthens it) unless the options name
+    an iteration count or another method (fit_config is changed in place)."""
+    from .methods import with_iterations
+    from .refine import plan_refinement
+
+    config = fit_config.refine
+    if config is None or cloud.nifti_affine is not None:
+        return None
+    plan = plan_refinement(cloud.points, config)
+    planned = fit_config.method_config.schedule.iterations
+    # the shorter schedule was measured for the preset's own method: another method keeps its own
+    if plan.applies and options.iterations is None and options.method is None \
+            and config.fit_iterations is not None and config.fit_iterations < planned:
+        fit_config.method_config = with_iterations(fit_config.method_config, config.fit_iterations)
+    return plan
+
+
+def _write_surface_artifacts(cloud, field, frame, fit_config, refine_plan, tmp: Path, report: _Reporter,
+                             timed) -> dict:
+    """Mesh (PLY/STL/OBJ/GLB), SDF NIfTI and weights into `tmp`; returns name -> path (+ "_mesh").
+    refine_plan: the input's refine.RefinePlan (None: the mesh is not refined)."""
     from .dicom import LPS_FROM_RAS
     from .mesh import export_mesh, extract_mesh, remove_unsupported_components
     from .sdf import sdf_grid_for, signed_distance_volume, write_nifti
@@ -315,6 +338,8 @@ def _write_surface_artifacts(cloud, field, frame, fit_config, tmp: Path, report:
                             should_cancel=report.should_cancel)
         mesh, cleanup = remove_unsupported_components(mesh, cloud.points, support_distance_mm(cloud.points))
         mesh.metadata["cleanup"] = cleanup
+        if refine_plan is not None:
+            mesh, mesh.metadata["refine"] = _refined(mesh, cloud.points, fit_config.refine, refine_plan)
         artifacts = {Path(v).name: Path(v) for v in export_mesh(mesh, tmp).values()}
     with timed("sdf"):
         shape, affine = sdf_grid_for(cloud, frame, fit_config.sdf)
@@ -327,6 +352,22 @@ def _write_surface_artifacts(cloud, field, frame, fit_config, tmp: Path, report:
     artifacts["_mesh"] = mesh
     artifacts["_sdf"] = (volume, affine)
     return artifacts
+
+
+def _refined(mesh, points_mm: np.ndarray, config, plan):
+    """The mesh with its vertices refined onto the input points (`refine.refine_vertices` under
+    `plan`), and the refinement's summary (with its seconds)."""
+    import time
+
+    import trimesh
+
+    from .refine import refine_vertices
+
+    t0 = time.perf_counter()
+    vertices, summary = refine_vertices(mesh.vertices, points_mm, config, plan)
+    out = trimesh.Trimesh(vertices, mesh.faces, process=False)
+    out.metadata.update(mesh.metadata)
+    return out, {**summary, "seconds": round(time.perf_counter() - t0, 3)}
 
 
 def support_distance_mm(points_mm: np.ndarray) -> float:
@@ -380,7 +421,7 @@ def _metrics(cloud, reference, reference_name, mesh, field, frame, fit_config, s
         "surface_level": field.level,
         "reference": reference_name,
         "surface": surface,
-        "mesh": {**mesh_summary(mesh), **mesh.metadata.get("cleanup", {}),
+        "mesh": {**mesh_summary(mesh), **mesh.metadata.get("cleanup", {}), "refine": mesh.metadata.get("refine"),
                  "field_queries": mesh.metadata.get("field_queries"), "dense_queries": mesh.metadata.get("dense_queries")},
         "weights": compression_metrics(cloud.source_bytes, field.module),
         "frame": frame.to_dict(),

@@ -42,8 +42,11 @@ def _monomials(u: np.ndarray, v: np.ndarray) -> np.ndarray:
 
 
 def fit_local_quadrics(points: np.ndarray, k: int = 20, chunk: int = 25_000,
-                       normals: np.ndarray | None = None, tree: cKDTree | None = None) -> LocalQuadrics:
+                       normals: np.ndarray | None = None, tree: cKDTree | None = None,
+                       at: np.ndarray | None = None) -> LocalQuadrics:
     """(N, 3) points -> one quadric patch per point over its k nearest neighbours (itself included).
+    at: optional (M,) indices of the points to fit patches at (default: every point); the result
+    then has M patches.
 
     normals: optional (N, 3) consistently oriented normals; a patch is `one_sided` when all its
     neighbours' normals have a positive dot product with its point's (no sample from the far side
@@ -53,9 +56,10 @@ def fit_local_quadrics(points: np.ndarray, k: int = 20, chunk: int = 25_000,
     a tiny ridge keeps degenerate neighbourhoods (collinear samples) solvable. `chunk` points are
     fitted at a time to bound memory (~chunk x k x 36 floats). tree: a kd-tree of `points` to reuse."""
     pts = np.asarray(points, dtype=np.float64)
-    n = len(pts)
-    k = int(min(max(k, 6), n))
-    dist, nn = (tree if tree is not None else cKDTree(pts)).query(pts, k=k, workers=-1)
+    at = np.arange(len(pts)) if at is None else np.asarray(at)
+    n = len(at)
+    k = int(min(max(k, 6), len(pts)))
+    dist, nn = (tree if tree is not None else cKDTree(pts)).query(pts[at], k=k, workers=-1)
     centre = np.empty((n, 3))
     frame = np.empty((n, 3, 3))
     coef = np.empty((n, 6))
@@ -81,7 +85,7 @@ def fit_local_quadrics(points: np.ndarray, k: int = 20, chunk: int = 25_000,
     one_sided = np.ones(n, bool)
     if normals is not None:
         nrm = np.asarray(normals, dtype=np.float64)
-        one_sided = np.einsum("nkj,nj->nk", nrm[nn], nrm).min(axis=1) > 0.0
+        one_sided = np.einsum("nkj,nj->nk", nrm[nn], nrm[at]).min(axis=1) > 0.0
     return LocalQuadrics(centre, frame, coef, dist[:, -1].copy(), residual, one_sided)
 
 
@@ -109,4 +113,34 @@ def project_onto_quadrics(queries: np.ndarray, nearest: np.ndarray, quadrics: Lo
         if max_relative_residual is not None:
             bad |= quadrics.residual[nearest] > max_relative_residual * quadrics.radius[nearest]
         out[bad] = np.asarray(fallback, dtype=np.float64)[bad]
+    return out
+
+
+def project_onto_blended_quadrics(queries: np.ndarray, quadrics: LocalQuadrics, tree: cKDTree,
+                                  blend: int = 8, chunk: int = 65_536) -> np.ndarray:
+    """(Q, 3) queries -> (Q, 3) moving-least-squares points: each query is projected onto the patches
+    of its `blend` nearest input points (along each patch's normal) and the projections are averaged
+    with weights exp(-(d / r)^2) (d: the query's distance to that point, r: its patch radius).
+
+    Blending several patches makes the result continuous as a query moves from one nearest point
+    to the next (a single patch per query would leave steps one sampling gap apart). tree: the
+    kd-tree of the points the patches were fitted to. `chunk` queries at a time bound the memory.
+    Units are those of the points."""
+    q = np.asarray(queries, dtype=np.float64)
+    blend = int(max(1, min(blend, len(quadrics.centre))))
+    e1, e2, normal = (np.ascontiguousarray(quadrics.frame[:, i]) for i in range(3))
+    out = np.empty_like(q)
+    for s in range(0, len(q), chunk):
+        qc = q[s:s + chunk]
+        dist, nn = tree.query(qc, k=blend, workers=-1)
+        dist, nn = dist.reshape(len(qc), blend), nn.reshape(len(qc), blend)
+        d = qc[:, None] - quadrics.centre[nn]  # (c, b, 3)
+        u, v = (d * e1[nn]).sum(-1), (d * e2[nn]).sum(-1)
+        nb = normal[nn]
+        a = quadrics.coef[nn]
+        height = a[..., 0] + a[..., 1] * u + a[..., 2] * v + a[..., 3] * u * u + a[..., 4] * u * v + a[..., 5] * v * v
+        step = height - (d * nb).sum(-1)  # along each patch's normal, from the query to the patch
+        weight = np.exp(-(dist / np.maximum(quadrics.radius[nn], 1e-12)) ** 2)
+        out[s:s + chunk] = qc + (weight[..., None] * step[..., None] * nb).sum(1) / \
+            np.maximum(weight.sum(1), 1e-300)[:, None]
     return out

@@ -67,6 +67,10 @@ def test_pipeline_metrics_and_weights(fitted):
     assert s["cd_l1_mm"] < 3.0 and 0 < s["fscore"] <= 1
     assert s["cd_l1_paper"] == pytest.approx(s["cd_l1_mm"] * 100 / m["frame"]["half_extent_mm"], rel=1e-6)
     assert m["weights"]["weights_bytes_fp16"] * 2 == m["weights"]["weights_bytes_fp32"]
+    # 12k points on four ribs are dense enough for the vertex refinement, which moved most vertices
+    refine = m["mesh"]["refine"]
+    assert refine["applied"] is True and refine["moved_fraction"] > 0.5, refine
+    assert 0 < refine["mean_shift_mm"] < refine["patch_radius_mm"]
     # loading the weights reproduces the field exactly
     field, _frame, meta = load_field(result.outdir)
     assert meta["frame"] == m["frame"] and field.level == pytest.approx(m["surface_level"])
@@ -121,6 +125,7 @@ def test_real_totalsegmentator_map_is_reconstructed_on_the_mask(tmp_path):
     result = run_pipeline(TOTALSEG, tmp_path / "ts", PipelineOptions(preset="smoke", metrics_samples=20_000))
     m = result.metrics
     assert m["input"]["labels"] == list(range(98, 104)) + list(range(110, 116))
+    assert m["mesh"]["refine"] is None  # label maps keep the field's mesh (their points are voxel faces)
     # the SDF volume is on the input's own grid
     sdf, seg = nib.load(result.outdir / "sdf.nii.gz"), nib.load(TOTALSEG)
     assert sdf.shape == seg.shape and np.allclose(sdf.affine, seg.affine)

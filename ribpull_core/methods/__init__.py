@@ -10,7 +10,7 @@ from __future__ import annotations
 import dataclasses
 import importlib
 
-from ..config import FitConfig, LabelMapConfig, MeshConfig
+from ..config import FitConfig, LabelMapConfig, MeshConfig, RefineConfig
 from ..errors import RibPullInputError
 from .base import Method
 from .training import with_schedule
@@ -25,14 +25,30 @@ METHOD_CLASSES = {
     "digs": "ribpull_core.methods.digs:DiGS",
 }
 
-#: run preset -> (default method, finest marching-cubes resolution, label-map handling). default
-#: meshes at 256 cells, about half a cell of its field's finest grid level at 60k points: 384 was
-#: as accurate (60k / 0.3 mm points CD-L1 0.425 vs 0.423 mm, 1.5 mm label map 0.433 both, 20k
-#: 0.545 vs 0.540, 5k 1.461 vs 1.454; 300k samples) and took 3x the mesh stage (8.4 -> 2.4 s at 60k)
+@dataclasses.dataclass(frozen=True)
+class RunPreset:
+    """What a run preset picks besides the method's own preset of the same name.
+
+    method: the default method; mesh_resolution: finest marching-cubes resolution; label_map:
+    label-map handling; refine: vertex refinement of point-cloud meshes onto the input (None: off).
+    """
+
+    method: str
+    mesh_resolution: int
+    label_map: LabelMapConfig
+    refine: RefineConfig | None
+
+
+#: default meshes at 256 cells, about half a cell of its field's finest grid level at 60k points: 384
+#: was as accurate (60k / 0.3 mm points CD-L1 0.425 vs 0.423 mm, 1.5 mm label map 0.433 both, 20k
+#: 0.545 vs 0.540, 5k 1.461 vs 1.454; 300k samples) and took 3x the mesh stage (8.4 -> 2.4 s at 60k).
+#: paper keeps the field's own mesh (no refinement).
 RUN_PRESETS = {
-    "default": ("sparseocc", 256, LabelMapConfig(boundary_sigma_mm=LABEL_MAP_SIGMA_MM, band_voxels=2.0)),
-    "paper": ("sparseocc", 256, LabelMapConfig()),
-    "smoke": ("sparseocc", 64, LabelMapConfig(boundary_sigma_mm=LABEL_MAP_SIGMA_MM, band_voxels=2.0)),
+    "default": RunPreset("sparseocc", 256, LabelMapConfig(boundary_sigma_mm=LABEL_MAP_SIGMA_MM, band_voxels=2.0),
+                         RefineConfig()),
+    "paper": RunPreset("sparseocc", 256, LabelMapConfig(), None),
+    "smoke": RunPreset("sparseocc", 64, LabelMapConfig(boundary_sigma_mm=LABEL_MAP_SIGMA_MM, band_voxels=2.0),
+                       RefineConfig()),
 }
 
 
@@ -42,6 +58,18 @@ def get_method_class(name: str) -> type[Method]:
         raise RibPullInputError("bad_parameter", f"unknown method {name!r}; choose one of {sorted(METHOD_CLASSES)}")
     mod_name, cls_name = METHOD_CLASSES[name].split(":")
     return getattr(importlib.import_module(mod_name), cls_name)
+
+
+def with_iterations(method_config, iterations: int):
+    """A copy of a method config whose schedule runs `iterations` steps. A shorter run is the
+    preset's schedule compressed: the warm-up keeps its share of it (at least 1 step)."""
+    if iterations < 1:
+        raise RibPullInputError("bad_parameter", "iterations must be >= 1")
+    schedule = method_config.schedule
+    changes = {"iterations": int(iterations)}
+    if schedule.warmup and iterations < schedule.iterations:
+        changes["warmup"] = max(1, round(schedule.warmup * iterations / schedule.iterations))
+    return with_schedule(method_config, **changes)
 
 
 def build_fit_config(
@@ -55,26 +83,20 @@ def build_fit_config(
     A shorter `iterations` than the preset's scales its warm-up by the same factor (at least 1)."""
     if preset not in RUN_PRESETS:
         raise RibPullInputError("bad_parameter", f"unknown preset {preset!r}; choose one of {sorted(RUN_PRESETS)}")
-    default_method, mesh_res, label_map = RUN_PRESETS[preset]
-    method = method or default_method
+    run = RUN_PRESETS[preset]
+    mesh_res, method = run.mesh_resolution, method or run.method
     cls = get_method_class(method)
     method_config = cls.presets[preset]()
     if iterations is not None:
-        if iterations < 1:
-            raise RibPullInputError("bad_parameter", "iterations must be >= 1")
-        schedule = method_config.schedule
-        changes = {"iterations": int(iterations)}
-        # a shorter run is the preset's schedule compressed: the warm-up keeps its share of it
-        if schedule.warmup and iterations < schedule.iterations:
-            changes["warmup"] = max(1, round(schedule.warmup * iterations / schedule.iterations))
-        method_config = with_schedule(method_config, **changes)
+        method_config = with_iterations(method_config, iterations)
     if resolution is not None:
         if not 16 <= resolution <= 1024:
             raise RibPullInputError("bad_parameter", "resolution must be between 16 and 1024")
         mesh_res = int(resolution)
     mesh = MeshConfig(resolution=mesh_res, coarse_resolution=min(64, mesh_res))
     return FitConfig(preset=preset, method=method, method_config=method_config, mesh=mesh,
-                     label_map=dataclasses.replace(label_map), seed=seed)
+                     label_map=dataclasses.replace(run.label_map),
+                     refine=None if run.refine is None else dataclasses.replace(run.refine), seed=seed)
 
 
-__all__ = ["METHOD_CLASSES", "RUN_PRESETS", "Method", "build_fit_config", "get_method_class"]
+__all__ = ["METHOD_CLASSES", "RUN_PRESETS", "Method", "RunPreset", "build_fit_config", "get_method_class", "with_iterations"]

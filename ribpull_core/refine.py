@@ -1,0 +1,97 @@
+"""Surface refinement: the field's mesh vertices moved onto the input points' local quadric patches.
+
+The field cannot bend on a scale finer than its finest grid cell (about one sampling gap), so its
+zero level set is a smoothed version of the sampled surface. After meshing, every vertex is
+projected onto a moving-least-squares surface of the input points (`quadrics`), patches of a
+fixed physical radius: large enough to average the sample noise over ~10-60 points, smaller than a
+rib's cross-section so that a patch stays on one side of the bone. The mesh's connectivity (and so
+its components, holes and watertightness) is the field's; only vertex positions change, each by at
+most `max_shift_gaps` sampling gaps (a vertex whose projection lands farther stays where the field
+put it: a patch there does not describe the surface, e.g. between two nearby structures).
+
+Units: millimetres throughout (the input's own frame).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .config import RefineConfig
+from .quadrics import fit_local_quadrics, project_onto_blended_quadrics
+
+
+def patch_size(points_mm: np.ndarray, config: RefineConfig, tree: cKDTree, probe: np.ndarray) -> tuple[int, float]:
+    """(N, 3) input points in mm -> (k, r): the neighbour count of a patch and the median distance
+    (mm) from a probe point (indices `probe`) to its k-th neighbour. k is the count within
+    config.radius_mm, at least config.min_neighbours (noise is averaged over that many samples) and
+    at most config.max_neighbours."""
+    kmax = int(min(config.max_neighbours, len(points_mm) - 1))
+    dist = np.median(tree.query(points_mm[probe], k=kmax + 1, workers=-1)[0], axis=0)  # dist[0] = 0 (itself)
+    k = int(np.clip(np.searchsorted(dist, config.radius_mm, side="right") - 1, config.min_neighbours, kmax))
+    return k, float(dist[min(k, kmax)])
+
+
+@dataclass
+class RefinePlan:
+    """Whether an input gets refined, decided before the fit (so the fit can be scheduled for it).
+
+    neighbours: points per patch; patch_radius_mm: median distance to the farthest of them;
+    patch_residual_mm: median RMS distance of the points from their patches (sample noise plus
+    misfit), over a probe of the points; applies: both within the config's bounds; reason: why not."""
+
+    neighbours: int
+    patch_radius_mm: float
+    patch_residual_mm: float
+    applies: bool
+    reason: str | None = None
+
+    def summary(self) -> dict:
+        return {"neighbours": self.neighbours, "patch_radius_mm": round(self.patch_radius_mm, 3),
+                "patch_residual_mm": round(self.patch_residual_mm, 4), "applied": self.applies,
+                **({"reason": self.reason} if self.reason else {})}
+
+
+def plan_refinement(points_mm: np.ndarray, config: RefineConfig, tree: cKDTree | None = None,
+                    n_probe: int = 4000) -> RefinePlan:
+    """(N, 3) input points in mm -> the RefinePlan, from patches at a strided probe of at most
+    ~n_probe points. Inputs too sparse (a patch's points spread farther than config.max_radius_mm:
+    such a patch spans the rib's curvature and would flatten it) or too noisy (the points lie more
+    than config.max_residual_mm RMS off their patches: a patch over so few of them would put back
+    noise the field smoothed out) are not refined."""
+    pts = np.asarray(points_mm, dtype=np.float64)
+    tree = tree if tree is not None else cKDTree(pts)
+    probe = np.arange(0, len(pts), max(1, len(pts) // n_probe))
+    k, radius = patch_size(pts, config, tree, probe)
+    residual = float(np.median(fit_local_quadrics(pts, k=k, tree=tree, at=probe).residual))
+    if radius > config.max_radius_mm:
+        reason = f"input too sparse: {k} points span {radius:.1f} mm, over the {config.max_radius_mm} mm a patch may cover"
+    elif residual > config.max_residual_mm:
+        reason = (f"input too noisy: the points lie {residual:.2f} mm (RMS) off their patches, over "
+                  f"{config.max_residual_mm} mm")
+    else:
+        reason = None
+    return RefinePlan(k, radius, residual, reason is None, reason)
+
+
+def refine_vertices(vertices_mm: np.ndarray, points_mm: np.ndarray, config: RefineConfig,
+                    plan: RefinePlan | None = None, tree: cKDTree | None = None) -> tuple[np.ndarray, dict]:
+    """(V, 3) mesh vertices and (N, 3) input points, both mm -> ((V, 3) refined vertices in mm, a
+    summary for metrics.json). plan: the input's `plan_refinement` (made here when not given); where
+    it does not apply the vertices come back unchanged, and the summary says why."""
+    pts = np.asarray(points_mm, dtype=np.float64)
+    verts = np.asarray(vertices_mm, dtype=np.float64)
+    tree = tree if tree is not None else cKDTree(pts)
+    plan = plan if plan is not None else plan_refinement(pts, config, tree)
+    if not plan.applies or len(verts) == 0:
+        return verts, plan.summary()
+    gap = float(np.median(tree.query(pts[:: max(1, len(pts) // 50_000)], k=2, workers=-1)[0][:, 1]))
+    patches = fit_local_quadrics(pts, k=plan.neighbours, tree=tree)
+    projected = project_onto_blended_quadrics(verts, patches, tree, blend=config.blend)
+    shift = np.linalg.norm(projected - verts, axis=1)
+    moved = shift <= config.max_shift_gaps * gap
+    out = np.where(moved[:, None], projected, verts)
+    return out, {**plan.summary(), "moved_fraction": round(float(moved.mean()), 4),
+                 "mean_shift_mm": round(float(shift[moved].mean()), 4) if moved.any() else 0.0}

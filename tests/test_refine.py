@@ -1,0 +1,91 @@
+"""Vertex refinement onto the input points (ribpull_core.refine): a perturbed mesh of a noisy
+sphere comes back onto the true sphere with its faces untouched; a sparse input and a vertex with
+no surface under it are left alone; the run presets switch it on (default, smoke) and off (paper)."""
+
+import numpy as np
+import pytest
+import trimesh
+from scipy.spatial import cKDTree
+
+from ribpull_core.config import RefineConfig
+from ribpull_core.methods import build_fit_config
+from ribpull_core.refine import patch_size, plan_refinement, refine_vertices
+
+RADIUS_MM = 20.0
+
+
+def _sphere_points(n: int, noise_mm: float, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    d = rng.standard_normal((n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return d * (RADIUS_MM + noise_mm * rng.standard_normal((n, 1)))
+
+
+def _perturbed_sphere_mesh(offset_mm: float, seed: int) -> trimesh.Trimesh:
+    """An icosphere whose vertices sit up to offset_mm off the true radius (a field's smoothing error)."""
+    mesh = trimesh.creation.icosphere(subdivisions=4, radius=RADIUS_MM)
+    rng = np.random.default_rng(seed)
+    v = mesh.vertices * (1.0 + rng.uniform(-offset_mm, offset_mm, (len(mesh.vertices), 1)) / RADIUS_MM)
+    return trimesh.Trimesh(v, mesh.faces, process=False)
+
+
+def _radial_error(v: np.ndarray) -> np.ndarray:
+    return np.abs(np.linalg.norm(v, axis=1) - RADIUS_MM)
+
+
+def test_refinement_brings_a_perturbed_mesh_onto_the_sampled_surface():
+    pts = _sphere_points(8000, 0.3, seed=0)  # ~0.45 mm apart, 0.3 mm noise
+    mesh = _perturbed_sphere_mesh(0.4, seed=1)
+    out, summary = refine_vertices(mesh.vertices, pts, RefineConfig())
+    assert summary["applied"] is True and summary["moved_fraction"] > 0.95, summary
+    before, after = _radial_error(mesh.vertices).mean(), _radial_error(out).mean()
+    assert before > 0.15 and after < 0.45 * before, (before, after)
+    # the noise of the samples is averaged away: the refined surface beats the samples themselves
+    assert after < 0.5 * _radial_error(pts).mean()
+    assert out.shape == mesh.vertices.shape and np.isfinite(out).all()
+
+
+def test_patch_size_follows_the_radius_within_its_bounds():
+    pts = _sphere_points(8000, 0.0, seed=0)
+    tree, probe = cKDTree(pts), np.arange(0, len(pts), 4)
+    k, r = patch_size(pts, RefineConfig(radius_mm=2.0), tree, probe)
+    assert RefineConfig().min_neighbours < k < RefineConfig().max_neighbours and r <= 2.0 + 1e-9
+    k_small, r_small = patch_size(pts, RefineConfig(radius_mm=0.1), tree, probe)  # fewer than the minimum inside
+    assert k_small == RefineConfig().min_neighbours and r_small > 0.1
+    k_big, _ = patch_size(pts, RefineConfig(radius_mm=10.0), tree, probe)  # hundreds inside: capped
+    assert k_big == RefineConfig().max_neighbours
+
+
+def test_noisy_input_is_left_as_meshed_and_says_why():
+    pts = _sphere_points(8000, 1.0, seed=0)  # 1 mm noise: patches over ~30 samples would add noise back
+    plan = plan_refinement(pts, RefineConfig())
+    assert plan.applies is False and "too noisy" in plan.reason and plan.patch_residual_mm > 0.5
+    mesh = _perturbed_sphere_mesh(0.4, seed=1)
+    out, summary = refine_vertices(mesh.vertices, pts, RefineConfig(), plan)
+    assert summary["applied"] is False and summary["reason"] == plan.reason
+    np.testing.assert_array_equal(out, mesh.vertices)
+
+
+def test_sparse_input_is_left_as_meshed_and_says_why():
+    pts = _sphere_points(300, 0.3, seed=0)  # ~4 mm apart: 13 samples spread over ~8 mm
+    mesh = _perturbed_sphere_mesh(0.4, seed=1)
+    out, summary = refine_vertices(mesh.vertices, pts, RefineConfig())
+    assert summary["applied"] is False and "too sparse" in summary["reason"]
+    assert summary["patch_radius_mm"] > RefineConfig().max_radius_mm
+    np.testing.assert_array_equal(out, mesh.vertices)
+
+
+def test_a_vertex_with_no_surface_under_it_stays_put():
+    pts = _sphere_points(8000, 0.0, seed=0)
+    mesh = _perturbed_sphere_mesh(0.0, seed=1)
+    v = mesh.vertices.copy()
+    v[0] *= (RADIUS_MM + 5.0) / RADIUS_MM  # 5 mm out: a projection would move it ~11 sampling gaps
+    out, summary = refine_vertices(v, pts, RefineConfig())
+    np.testing.assert_array_equal(out[0], v[0])
+    assert summary["moved_fraction"] < 1.0
+    assert _radial_error(out[1:]).max() < 0.05
+
+
+@pytest.mark.parametrize("preset, on", [("default", True), ("smoke", True), ("paper", False)])
+def test_run_presets_switch_refinement(preset, on):
+    assert (build_fit_config(preset).refine is not None) is on
