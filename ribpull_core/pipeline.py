@@ -304,15 +304,15 @@ def run_pipeline(
 
 
 def _plan_refinement(cloud, fit_config, options: PipelineOptions):
-    """The input's refine.RefinePlan, or None when the run does not refine (the preset says no, or a
-    label map: its points lie on voxel faces, and patches of them are stairs). A plan that applies
+    """The input's refine.RefinePlan, or None when the preset does not refine. A label map is refined
+    onto its boundary points (placed between the voxel centres), like a point cloud. A plan that applies
     shortens the fit to the refinement's fit_iterations (never lengthens it) unless the options name
     an iteration count or another method (fit_config is changed in place)."""
     from .methods import with_iterations
     from .refine import plan_refinement
 
     config = fit_config.refine
-    if config is None or cloud.nifti_affine is not None:
+    if config is None:
         return None
     plan = plan_refinement(cloud.points, config)
     planned = fit_config.method_config.schedule.iterations
