@@ -107,7 +107,7 @@ class FitConfig:
     sdf: SdfConfig = field(default_factory=SdfConfig)
     metrics: MetricsConfig = field(default_factory=MetricsConfig)
     label_map: LabelMapConfig = field(default_factory=LabelMapConfig)
-    #: point clouds: vertex refinement onto the input after meshing (None: the mesh as the field gives it)
+    #: vertex refinement onto the input points after meshing (None: the mesh as the field gives it)
     refine: RefineConfig | None = None
     seed: int = 0
 

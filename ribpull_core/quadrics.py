@@ -137,8 +137,7 @@ def project_onto_blended_quadrics(queries: np.ndarray, quadrics: LocalQuadrics, 
         d = qc[:, None] - quadrics.centre[nn]  # (c, b, 3)
         u, v = (d * e1[nn]).sum(-1), (d * e2[nn]).sum(-1)
         nb = normal[nn]
-        a = quadrics.coef[nn]
-        height = a[..., 0] + a[..., 1] * u + a[..., 2] * v + a[..., 3] * u * u + a[..., 4] * u * v + a[..., 5] * v * v
+        height = np.einsum("cbi,cbi->cb", _monomials(u, v), quadrics.coef[nn])
         step = height - (d * nb).sum(-1)  # along each patch's normal, from the query to the patch
         weight = np.exp(-(dist / np.maximum(quadrics.radius[nn], 1e-12)) ** 2)
         out[s:s + chunk] = qc + (weight[..., None] * step[..., None] * nb).sum(1) / \

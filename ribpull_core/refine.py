@@ -20,6 +20,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .config import RefineConfig
+from .pointcloud import sampling_gap
 from .quadrics import fit_local_quadrics, project_onto_blended_quadrics
 
 
@@ -31,7 +32,7 @@ def patch_size(points_mm: np.ndarray, config: RefineConfig, tree: cKDTree, probe
     kmax = int(min(config.max_neighbours, len(points_mm) - 1))
     dist = np.median(tree.query(points_mm[probe], k=kmax + 1, workers=-1)[0], axis=0)  # dist[0] = 0 (itself)
     k = int(np.clip(np.searchsorted(dist, config.radius_mm, side="right") - 1, config.min_neighbours, kmax))
-    return k, float(dist[min(k, kmax)])
+    return k, float(dist[k])
 
 
 @dataclass
@@ -40,13 +41,17 @@ class RefinePlan:
 
     neighbours: points per patch; patch_radius_mm: median distance to the farthest of them;
     patch_residual_mm: median RMS distance of the points from their patches (sample noise plus
-    misfit), over a probe of the points; applies: both within the config's bounds; reason: why not."""
+    misfit), over a probe of the points; reason: why the input is not refined (None: it is)."""
 
     neighbours: int
     patch_radius_mm: float
     patch_residual_mm: float
-    applies: bool
     reason: str | None = None
+
+    @property
+    def applies(self) -> bool:
+        """Both the radius and the residual are within the config's bounds."""
+        return self.reason is None
 
     def summary(self) -> dict:
         return {"neighbours": self.neighbours, "patch_radius_mm": round(self.patch_radius_mm, 3),
@@ -73,7 +78,7 @@ def plan_refinement(points_mm: np.ndarray, config: RefineConfig, tree: cKDTree |
                   f"{config.max_residual_mm} mm")
     else:
         reason = None
-    return RefinePlan(k, radius, residual, reason is None, reason)
+    return RefinePlan(k, radius, residual, reason)
 
 
 def refine_vertices(vertices_mm: np.ndarray, points_mm: np.ndarray, config: RefineConfig,
@@ -87,7 +92,7 @@ def refine_vertices(vertices_mm: np.ndarray, points_mm: np.ndarray, config: Refi
     plan = plan if plan is not None else plan_refinement(pts, config, tree)
     if not plan.applies or len(verts) == 0:
         return verts, plan.summary()
-    gap = float(np.median(tree.query(pts[:: max(1, len(pts) // 50_000)], k=2, workers=-1)[0][:, 1]))
+    gap = sampling_gap(pts, k=1, tree=tree)  # median nearest-neighbour distance
     patches = fit_local_quadrics(pts, k=plan.neighbours, tree=tree)
     projected = project_onto_blended_quadrics(verts, patches, tree, blend=config.blend)
     shift = np.linalg.norm(projected - verts, axis=1)

@@ -30,7 +30,7 @@ class RunPreset:
     """What a run preset picks besides the method's own preset of the same name.
 
     method: the default method; mesh_resolution: finest marching-cubes resolution; label_map:
-    label-map handling; refine: vertex refinement of point-cloud meshes onto the input (None: off).
+    label-map handling; refine: vertex refinement of the mesh onto the input points (None: off).
     """
 
     method: str
