@@ -29,12 +29,25 @@ def ensure_orthanc(extra_packages: tuple[str, ...] = ()) -> str | None:
     plugins = {"orthanc-dicomweb": "libOrthancDicomWeb.so", "orthanc-python": "libOrthancPython.so"}
     missing = [p for p in wanted if (p == "orthanc" and shutil.which("Orthanc") is None)
                or (p in plugins and not (PLUGIN_DIR / plugins[p]).exists())]
+    return apt_install(missing)
+
+
+def ensure_dcmtk() -> str | None:
+    """None when DCMTK's `dcmdump` is on PATH (installing Debian's dcmtk if need be); else why not."""
+    return apt_install([] if shutil.which("dcmdump") else ["dcmtk"])
+
+
+def apt_install(missing: list[str]) -> str | None:
+    """Install the Debian packages `missing` with apt-get (root only; `apt-get update` and a retry
+    when the first try fails). None when there is nothing missing or the install worked, else why
+    not. A failure is remembered, so later callers skip at once instead of retrying."""
     if not missing:
         return None
-    if _install_error:
-        return _install_error[0]
+    failed = [e for e in _install_error if any(p in e for p in missing)]
+    if failed:
+        return failed[0]
     if os.geteuid() != 0 or shutil.which("apt-get") is None:
-        return f"Orthanc is not installed ({', '.join(missing)}) and apt-get cannot run here (not root / no apt)"
+        return f"{', '.join(missing)} not installed and apt-get cannot run here (not root / no apt)"
     env = {**os.environ, "DEBIAN_FRONTEND": "noninteractive"}
     for cmd in (["apt-get", "install", "-y", "--no-install-recommends", *missing],
                 ["apt-get", "update"], ["apt-get", "install", "-y", "--no-install-recommends", *missing]):
@@ -42,7 +55,7 @@ def ensure_orthanc(extra_packages: tuple[str, ...] = ()) -> str | None:
         if r.returncode == 0 and cmd[1] == "install":
             return None
     _install_error.append(f"apt-get install {' '.join(missing)} failed: {r.stderr[-500:]}")
-    return _install_error[0]
+    return _install_error[-1]
 
 
 class Orthanc:
