@@ -14,33 +14,16 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import tempfile
-import time
 from pathlib import Path
+
+from abkit import fit_default, poisson_baseline, score_cell
 
 DEFAULT_CASES = ("5000:0.3", "20000:0.3", "60000:0.0", "60000:0.3", "60000:1.0")
 
 
-def fit_with_targets(points_path: Path, outdir: Path, targets: str):
-    """run_pipeline on `points_path` with the default preset's queries.targets set to `targets`;
-    returns (mesh in mm, seconds)."""
-    import trimesh
-
-    import ribpull_core.methods.sparseocc as so
-    from ribpull_core.pipeline import PipelineOptions, run_pipeline
-
-    original = so.SparseOcc.presets["default"]
-
-    def preset():
-        c = original()
-        return dataclasses.replace(c, queries=dataclasses.replace(c.queries, targets=targets))
-
-    so.SparseOcc.presets["default"] = preset
-    try:
-        t = time.perf_counter()
-        run_pipeline(points_path, outdir, PipelineOptions(preset="default", skeleton=False, preview=False))
-        return trimesh.load(outdir / "mesh.ply", force="mesh"), time.perf_counter() - t
-    finally:
-        so.SparseOcc.presets["default"] = original
+def with_targets(targets: str):
+    """A SparseOccConfig change: queries.targets = targets."""
+    return lambda c: dataclasses.replace(c, queries=dataclasses.replace(c.queries, targets=targets))
 
 
 def main() -> None:
@@ -50,10 +33,7 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
 
-    from ribpull_core.bench.baselines import flood_fill_normals, poisson_mesh
     from ribpull_core.io import write_point_cloud
-    from ribpull_core.mesh import count_components
-    from ribpull_core.metrics import surface_metrics
     from ribpull_core.phantom import PhantomConfig, make_phantom, sample_surface
 
     phantom = make_phantom(PhantomConfig(seed=args.seed))
@@ -68,14 +48,11 @@ def main() -> None:
             cells, cd = [], {}
             for name in ("nearest", "quadric", "poisson"):
                 if name == "poisson":
-                    t = time.perf_counter()
-                    mesh = poisson_mesh(cloud.points, flood_fill_normals(cloud.points))
-                    seconds = time.perf_counter() - t
+                    mesh, seconds = poisson_baseline(cloud.points)
                 else:
-                    mesh, seconds = fit_with_targets(path, Path(tmp) / f"out_{n}_{noise}_{name}", name)
-                s = surface_metrics(mesh, phantom.mesh, n_samples=args.samples, tau_mm=1.0, seed=0)
-                cd[name] = s["cd_l1_mm"]
-                cells.append(f"{s['cd_l1_mm']:.3f} / {s['hausdorff_mm']:.2f} / {count_components(mesh)} / {seconds:.0f}")
+                    mesh, seconds = fit_default(path, Path(tmp) / f"out_{n}_{noise}_{name}", with_targets(name))
+                cd[name], cell = score_cell(mesh, phantom.mesh, args.samples)
+                cells.append(f"{cell} / {seconds:.0f}")
             print(f"| {n} | {noise:g} | " + " | ".join(cells) + f" | {cd['quadric'] / cd['poisson']:.2f} |", flush=True)
 
 

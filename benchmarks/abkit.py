@@ -1,0 +1,54 @@
+"""Shared pieces of the A/B scripts in benchmarks/: a run of the `default` preset with one change
+to its SparseOcc config, and the phantom case each script scores against its TRUE surface."""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from pathlib import Path
+
+
+@contextlib.contextmanager
+def default_preset_changed(change):
+    """Within the block, SparseOcc's `default` preset is change(default_config()) (change: a
+    SparseOccConfig -> SparseOccConfig function; None leaves it as it is)."""
+    import ribpull_core.methods.sparseocc as so
+
+    original = so.SparseOcc.presets["default"]
+    if change is not None:
+        so.SparseOcc.presets["default"] = lambda: change(original())
+    try:
+        yield
+    finally:
+        so.SparseOcc.presets["default"] = original
+
+
+def fit_default(points_path: Path, outdir: Path, change=None):
+    """run_pipeline (default preset, no skeleton or preview) on `points_path` with `change` applied
+    to its SparseOcc config; returns (mesh in mm, seconds of the whole call)."""
+    import trimesh
+
+    from ribpull_core.pipeline import PipelineOptions, run_pipeline
+
+    with default_preset_changed(change):
+        t = time.perf_counter()
+        run_pipeline(points_path, outdir, PipelineOptions(preset="default", skeleton=False, preview=False))
+        return trimesh.load(outdir / "mesh.ply", force="mesh"), time.perf_counter() - t
+
+
+def poisson_baseline(points_mm):
+    """Screened Poisson on flood-fill-oriented normals (the bench's baseline); (mesh mm, seconds)."""
+    from ribpull_core.bench.baselines import flood_fill_normals, poisson_mesh
+
+    t = time.perf_counter()
+    mesh = poisson_mesh(points_mm, flood_fill_normals(points_mm))
+    return mesh, time.perf_counter() - t
+
+
+def score_cell(mesh, truth_mesh, samples: int) -> tuple[float, str]:
+    """(CD-L1 mm, "CD-L1 / HD / parts" cell) of a mesh against the true surface, `samples` per side."""
+    from ribpull_core.mesh import count_components
+    from ribpull_core.metrics import surface_metrics
+
+    s = surface_metrics(mesh, truth_mesh, n_samples=samples, tau_mm=1.0, seed=0)
+    return s["cd_l1_mm"], f"{s['cd_l1_mm']:.3f} / {s['hausdorff_mm']:.2f} / {count_components(mesh)}"
