@@ -52,3 +52,32 @@ def score_cell(mesh, truth_mesh, samples: int) -> tuple[float, str]:
 
     s = surface_metrics(mesh, truth_mesh, n_samples=samples, tau_mm=1.0, seed=0)
     return s["cd_l1_mm"], f"{s['cd_l1_mm']:.3f} / {s['hausdorff_mm']:.2f} / {count_components(mesh)}"
+
+
+def case_arguments(doc: str, default_cases: tuple[str, ...]):
+    """The A/B scripts' command line: --cases POINTS:NOISE_MM ..., --samples, --seed."""
+    import argparse
+
+    ap = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--cases", nargs="+", default=list(default_cases), help="POINTS:NOISE_MM pairs")
+    ap.add_argument("--samples", type=int, default=1_000_000, help="samples per side against the truth")
+    ap.add_argument("--seed", type=int, default=0)
+    return ap.parse_args()
+
+
+def phantom_cases(args, workdir: Path):
+    """(phantom, cases): the phantom of args.seed (its `.mesh` is the true surface, mm) and an
+    iterator of (n_points, noise_mm, cloud, points_path) for each of args.cases, the phantom sampled
+    with that many points and that much Gaussian noise (mm), written under workdir."""
+    from ribpull_core.io import write_point_cloud
+    from ribpull_core.phantom import PhantomConfig, make_phantom, sample_surface
+
+    phantom = make_phantom(PhantomConfig(seed=args.seed))
+
+    def cases():
+        for spec in args.cases:
+            n, noise = int(spec.split(":")[0]), float(spec.split(":")[1])
+            cloud = sample_surface(phantom, n, noise, seed=args.seed + 1)
+            yield n, noise, cloud, write_point_cloud(Path(workdir) / f"points_{n}_{noise}.ply", cloud)
+
+    return phantom, cases()

@@ -14,12 +14,11 @@ skipped on all of these inputs (the points lie ~0.8 mm RMS off their patches: "t
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import tempfile
 from pathlib import Path
 
-from abkit import fit_default, poisson_baseline, score_cell
+from abkit import case_arguments, fit_default, phantom_cases, poisson_baseline, score_cell
 
 DEFAULT_CASES = ("60000:1.0", "200000:1.0")
 
@@ -37,25 +36,14 @@ VARIANTS = {
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--cases", nargs="+", default=list(DEFAULT_CASES), help="POINTS:NOISE_MM pairs")
-    ap.add_argument("--samples", type=int, default=1_000_000, help="samples per side against the truth")
-    ap.add_argument("--seed", type=int, default=0)
-    args = ap.parse_args()
-
     import trimesh
 
-    from ribpull_core.io import write_point_cloud
-    from ribpull_core.phantom import PhantomConfig, make_phantom, sample_surface
-
-    phantom = make_phantom(PhantomConfig(seed=args.seed))
+    args = case_arguments(__doc__, DEFAULT_CASES)
     print("| points | noise mm | run | CD-L1 / HD / parts | s | CD-L1 / Poisson |")
     print("|---|---|---|---|---:|---:|")
     with tempfile.TemporaryDirectory() as tmp:
-        for spec in args.cases:
-            n, noise = int(spec.split(":")[0]), float(spec.split(":")[1])
-            cloud = sample_surface(phantom, n, noise, seed=args.seed + 1)
-            path = write_point_cloud(Path(tmp) / f"points_{n}_{noise}.ply", cloud)
+        phantom, cases = phantom_cases(args, Path(tmp))
+        for n, noise, cloud, path in cases:
             runs = []
             mesh, seconds = poisson_baseline(cloud.points)
             runs.append(("screened Poisson", mesh, seconds))

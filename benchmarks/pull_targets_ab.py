@@ -11,12 +11,11 @@ queries.targets differs. Times are the whole run_pipeline call and the Poisson c
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import tempfile
 from pathlib import Path
 
-from abkit import fit_default, poisson_baseline, score_cell
+from abkit import case_arguments, fit_default, phantom_cases, poisson_baseline, score_cell
 
 DEFAULT_CASES = ("5000:0.3", "20000:0.3", "60000:0.0", "60000:0.3", "60000:1.0")
 
@@ -27,24 +26,13 @@ def with_targets(targets: str):
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--cases", nargs="+", default=list(DEFAULT_CASES), help="POINTS:NOISE_MM pairs")
-    ap.add_argument("--samples", type=int, default=1_000_000, help="samples per side against the truth")
-    ap.add_argument("--seed", type=int, default=0)
-    args = ap.parse_args()
-
-    from ribpull_core.io import write_point_cloud
-    from ribpull_core.phantom import PhantomConfig, make_phantom, sample_surface
-
-    phantom = make_phantom(PhantomConfig(seed=args.seed))
+    args = case_arguments(__doc__, DEFAULT_CASES)
     print("| points | noise mm | nearest CD-L1 / HD / parts / s | quadric CD-L1 / HD / parts / s "
           "| Poisson CD-L1 / HD / parts / s | quadric / Poisson |")
     print("|---|---|---|---|---|---|")
     with tempfile.TemporaryDirectory() as tmp:
-        for spec in args.cases:
-            n, noise = int(spec.split(":")[0]), float(spec.split(":")[1])
-            cloud = sample_surface(phantom, n, noise, seed=args.seed + 1)
-            path = write_point_cloud(Path(tmp) / f"points_{n}_{noise}.ply", cloud)
+        phantom, cases = phantom_cases(args, Path(tmp))
+        for n, noise, cloud, path in cases:
             cells, cd = [], {}
             for name in ("nearest", "quadric", "poisson"):
                 if name == "poisson":
