@@ -3,6 +3,7 @@
 Debian ships `orthanc` and `orthanc-dicomweb` (and `orthanc-python`); `ensure_orthanc()` installs them
 with apt-get when missing and this process is root, else the tests skip with the reason. Each
 `Orthanc` runs from a temp directory (config, storage, index) with DIMSE and remote access off.
+`ensure_dcmtk()` does the same for DCMTK's `dcmdump`, which the DICOM output tests parse with.
 """
 
 from __future__ import annotations
