@@ -4,8 +4,14 @@ to its SparseOcc config, and the phantom case each script scores against its TRU
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import time
 from pathlib import Path
+
+
+def config_change(part: str, **values):
+    """A SparseOccConfig change for `fit_default`: config.<part> (e.g. "queries") with `values` replaced."""
+    return lambda c: dataclasses.replace(c, **{part: dataclasses.replace(getattr(c, part), **values)})
 
 
 @contextlib.contextmanager

@@ -14,24 +14,18 @@ skipped on all of these inputs (the points lie ~0.8 mm RMS off their patches: "t
 
 from __future__ import annotations
 
-import dataclasses
 import tempfile
 from pathlib import Path
 
-from abkit import case_arguments, fit_default, phantom_cases, poisson_baseline, score_cell
+from abkit import case_arguments, config_change, fit_default, phantom_cases, poisson_baseline, score_cell
 
 DEFAULT_CASES = ("60000:1.0", "200000:1.0")
 
 
-def _change(part: str, **values):
-    """A SparseOccConfig change: config.<part> with `values` replaced."""
-    return lambda c: dataclasses.replace(c, **{part: dataclasses.replace(getattr(c, part), **values)})
-
-
 VARIANTS = {
-    "near-surface offset x2": _change("sign", near_surface_offset=1.0),
-    "finest cell 2 gaps": _change("field", grid_finest_cell=2.0),
-    "quadric targets k40": _change("queries", target_knn=40),
+    "near-surface offset x2": config_change("sign", near_surface_offset=1.0),
+    "finest cell 2 gaps": config_change("field", grid_finest_cell=2.0),
+    "quadric targets k40": config_change("queries", target_knn=40),
 }
 
 
@@ -55,10 +49,9 @@ def main() -> None:
             for i, (name, change) in enumerate(VARIANTS.items()):
                 mesh, seconds = fit_default(path, Path(tmp) / f"out_{n}_{i}", change)
                 runs.append((name, mesh, seconds))
-            poisson_cd = None
-            for name, mesh, seconds in runs:
-                cd, cell = score_cell(mesh, phantom.mesh, args.samples)
-                poisson_cd = poisson_cd or cd
+            scores = [score_cell(mesh, phantom.mesh, args.samples) for _, mesh, _ in runs]
+            poisson_cd = scores[0][0]  # runs[0] is Poisson
+            for (name, _, seconds), (cd, cell) in zip(runs, scores):
                 print(f"| {n} | {noise:g} | {name} | {cell} | {seconds:.0f} | {cd / poisson_cd:.2f} |", flush=True)
 
 

@@ -11,18 +11,12 @@ queries.targets differs. Times are the whole run_pipeline call and the Poisson c
 
 from __future__ import annotations
 
-import dataclasses
 import tempfile
 from pathlib import Path
 
-from abkit import case_arguments, fit_default, phantom_cases, poisson_baseline, score_cell
+from abkit import case_arguments, config_change, fit_default, phantom_cases, poisson_baseline, score_cell
 
 DEFAULT_CASES = ("5000:0.3", "20000:0.3", "60000:0.0", "60000:0.3", "60000:1.0")
-
-
-def with_targets(targets: str):
-    """A SparseOccConfig change: queries.targets = targets."""
-    return lambda c: dataclasses.replace(c, queries=dataclasses.replace(c.queries, targets=targets))
 
 
 def main() -> None:
@@ -38,7 +32,7 @@ def main() -> None:
                 if name == "poisson":
                     mesh, seconds = poisson_baseline(cloud.points)
                 else:
-                    mesh, seconds = fit_default(path, Path(tmp) / f"out_{n}_{noise}_{name}", with_targets(name))
+                    mesh, seconds = fit_default(path, Path(tmp) / f"out_{n}_{noise}_{name}", config_change("queries", targets=name))
                 cd[name], cell = score_cell(mesh, phantom.mesh, args.samples)
                 cells.append(f"{cell} / {seconds:.0f}")
             print(f"| {n} | {noise:g} | " + " | ".join(cells) + f" | {cd['quadric'] / cd['poisson']:.2f} |", flush=True)

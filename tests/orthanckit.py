@@ -3,7 +3,7 @@
 Debian ships `orthanc` and `orthanc-dicomweb` (and `orthanc-python`); `ensure_orthanc()` installs them
 with apt-get when missing and this process is root, else the tests skip with the reason. Each
 `Orthanc` runs from a temp directory (config, storage, index) with DIMSE and remote access off.
-`ensure_dcmtk()` does the same for DCMTK's `dcmdump`, which the DICOM output tests parse with.
+`require_dcmtk()` does the same for DCMTK's `dcmdump`, which the DICOM output tests parse with.
 """
 
 from __future__ import annotations
@@ -33,9 +33,14 @@ def ensure_orthanc(extra_packages: tuple[str, ...] = ()) -> str | None:
     return apt_install(missing)
 
 
-def ensure_dcmtk() -> str | None:
-    """None when DCMTK's `dcmdump` is on PATH (installing Debian's dcmtk if need be); else why not."""
-    return apt_install([] if shutil.which("dcmdump") else ["dcmtk"])
+def require_dcmtk() -> None:
+    """Return when DCMTK's `dcmdump` is on PATH (installing Debian's dcmtk if need be); else skip
+    the calling test loudly, with the reason."""
+    why = apt_install([] if shutil.which("dcmdump") else ["dcmtk"])
+    if why:
+        import pytest
+
+        pytest.skip(f"NO DCMTK TO CHECK THE DICOM OUTPUTS WITH: {why}")
 
 
 def apt_install(missing: list[str]) -> str | None:

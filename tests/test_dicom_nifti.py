@@ -171,9 +171,7 @@ def test_nifti_outputs_stay_in_ras(fitted, phantom_nifti):
 
 
 def test_outputs_and_a_ct_slice_parse_with_dcmtk(fitted, tmp_path):
-    why = orthanckit.ensure_dcmtk()  # installs Debian's dcmtk when missing (root)
-    if why:
-        pytest.skip(f"NO DCMTK TO CHECK THE DICOM OUTPUTS WITH: {why}")
+    orthanckit.require_dcmtk()  # installs Debian's dcmtk when missing (root), else skips
     with zipfile.ZipFile(fitted / "study_ct.zip") as zf:
         (tmp_path / "ct_0001.dcm").write_bytes(zf.read("ct_0001.dcm"))
     for path in [fitted / n for n in DICOM_OUTPUTS[:3]] + [tmp_path / "ct_0001.dcm"]:
