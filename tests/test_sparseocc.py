@@ -24,7 +24,7 @@ from ribpull_core.losses import (
 )
 from ribpull_core.methods import build_fit_config
 from ribpull_core.methods.base import sample_pull_queries, warmup_cosine_lr
-from ribpull_core.methods.sparseocc import SparseOcc, margin_and_gradient, space_labels
+from ribpull_core.methods.sparseocc import SparseOcc, distance_to_points, margin_and_gradient, space_labels
 from ribpull_core.methods.training import with_schedule
 
 
@@ -115,6 +115,43 @@ def test_space_labels_on_a_sphere_are_right():
     assert (np.linalg.norm(lab.near_in, axis=1) < 0.5).mean() > 0.99
     assert (np.linalg.norm(lab.near_out, axis=1) > 0.5).mean() > 0.99
     assert 0 < lab.offset < 0.1
+
+
+def test_margin_uncertainty_is_the_difference_of_the_softmax_probabilities():
+    logits = torch.randn(10_000, 2, dtype=torch.float64) * 8
+    p = torch.softmax(logits, dim=-1)
+    assert torch.allclose(margin_uncertainty(logits), p[:, 1] - p[:, 0], atol=1e-12)
+
+
+def test_near_surface_offset_is_capped_in_millimetres():
+    # sparse points: the density-derived offset is large; the cap (mm, through unit_mm) bounds it
+    pts = sphere_points(800, 0.5)
+    free = space_labels(pts, np.random.default_rng(0), n_free=2000)
+    capped = space_labels(pts, np.random.default_rng(0), n_free=2000, max_offset=0.25 * free.offset)
+    assert capped.offset == pytest.approx(0.25 * free.offset)
+    assert np.allclose(np.linalg.norm(capped.near_out - pts, axis=1), capped.offset, atol=1e-6)
+    cfg = build_fit_config("smoke").method_config
+    method = SparseOcc(cfg, unit_mm=100.0)  # 1 unit = 100 mm: a 1 mm cap is 0.01 units
+    method.setup(pts, torch.device("cpu"))
+    assert cfg.sign.near_surface_offset_max_mm == 1.0 and method.near_margin == pytest.approx(0.5 * 0.01)
+    unscaled = SparseOcc(cfg)  # no unit_mm: the cap cannot apply, the density-derived offset stands
+    unscaled.setup(pts, torch.device("cpu"))
+    assert unscaled.near_margin == pytest.approx(0.5 * free.offset)
+
+
+def test_free_space_distances_are_exact_near_and_an_upper_bound_far():
+    rng = np.random.default_rng(3)
+    pts = sphere_points(20_000, 0.5)
+    queries = rng.uniform(-1.2, 1.2, (5000, 3))
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(pts)
+    exact = tree.query(queries, k=1)[0]
+    d = distance_to_points(pts, queries, tree, exact_within=0.2)
+    near = exact <= 0.2
+    assert near.any() and (~near).any()
+    assert np.allclose(d[near], exact[near], atol=1e-6)
+    assert (d[~near] >= exact[~near] - 1e-6).all() and (d[~near] <= exact[~near] + 0.05).all()
 
 
 def test_paper_preset_runs_a_few_iterations():

@@ -131,8 +131,12 @@ class Method(ABC):
     #: runs by default) and "smoke" (seconds, for tests). Each is a zero-argument factory.
     presets: ClassVar[dict[str, Callable[[], Any]]] = {}
 
-    def __init__(self, config: Any = None):
+    def __init__(self, config: Any = None, unit_mm: float | None = None):
+        """unit_mm: millimetres per unit-frame unit of the points the method will be fitted to
+        (the pipeline passes its UnitFrame's half_extent_mm); None when unknown, and then config
+        lengths stated in mm do not apply."""
         self.config = config if config is not None else self.presets["default"]()
+        self.unit_mm = unit_mm
 
     @abstractmethod
     def arch(self) -> dict:

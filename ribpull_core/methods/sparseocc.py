@@ -126,7 +126,9 @@ class SignConfig:
     free_space_weight / free_space_points: hinge "outside" at points a flood fill reaches from the
     border without crossing the dilated input. near_surface_weight / near_surface_points: hinges
     inside / outside at input points -/+ near_surface_offset (x the flood-fill spacing) along
-    flood-fill-oriented normals. known_weight / known_points: hinges at the occupancy the input
+    flood-fill-oriented normals, but at most near_surface_offset_max_mm millimetres (0: no cap;
+    needs the method's unit_mm): a point pushed deeper than a thin bone's half-thickness lands
+    beyond its far wall, where "inside" is false. known_weight / known_points: hinges at the occupancy the input
     states (a label map's voxel centres near its boundary: inside ones U >= margin, outside ones
     U <= -margin, margin = half of (distance to the other class - one voxel), so 0 at the first
     ring); used only when the input has it.
@@ -137,6 +139,7 @@ class SignConfig:
     near_surface_weight: float = 0.0
     near_surface_points: int = 2048
     near_surface_offset: float = 0.5
+    near_surface_offset_max_mm: float = 0.0
     known_weight: float = 0.0
     known_points: int = 4096
 
@@ -181,6 +184,10 @@ def default_config() -> SparseOccConfig:
     (20 neighbours) instead of the point, wherever all the patch's samples face one way: a smooth
     target between the samples (60k / 0.3 mm: CD-L1 0.309 -> 0.284 mm); at 5k points no patch
     is one-sided (a 20-point patch wraps around a rib), so sparse inputs keep the paper's targets.
+    The near-surface hinges sit half a sampling gap off the points but at most 1 mm: at 10k points
+    half a gap is 3 mm, deeper than a rib's 2.5-3.5 mm half-thickness, so "inside" points landed
+    beyond the far wall and the ribs merged (5k / 0 mm: CD-L1 1.455 -> 0.938 mm; 10k / 0.3 mm:
+    0.833 -> 0.643 mm, Poisson 0.763; 60k unchanged; 300k samples, benchmarks/offset_cap_ab.py).
     Measured in docs/benchmarks.md (benchmarks/pull_targets_ab.py)."""
     return SparseOccConfig(
         field=FieldConfig(network="grid", grid_levels=8, grid_log2_table=18, grid_max_resolution=256, grid_lr=5e-3,
@@ -189,7 +196,7 @@ def default_config() -> SparseOccConfig:
                             gradient="finite_difference", outlier_gap_factor=2.5, targets="quadric"),
         entropy=EntropyConfig(input_points=1000, uniform_points=1000, lambda_max=1.0, n_minimax=200),
         sign=SignConfig(free_space_weight=10.0, free_space_points=2048, near_surface_weight=10.0,
-                        near_surface_points=4096, known_weight=10.0),
+                        near_surface_points=4096, near_surface_offset_max_mm=1.0, known_weight=10.0),
         schedule=ScheduleConfig(iterations=1000, lr=2e-3, warmup=30, final_lr_ratio=0.05, early_stop_window=100,
                                 early_stop_rel_tol=0.005, early_stop_min_fraction=0.6),
     )
@@ -286,11 +293,13 @@ def oriented_normals(points_unit: np.ndarray, outside: np.ndarray, spacing: floa
 
 
 def space_labels(points_unit: np.ndarray, rng: np.random.Generator, n_free: int = 400_000,
-                 offset_fraction: float = 0.5, tree: cKDTree | None = None, gap: float | None = None) -> SpaceLabels:
+                 offset_fraction: float = 0.5, tree: cKDTree | None = None, gap: float | None = None,
+                 max_offset: float | None = None) -> SpaceLabels:
     """Free-space points (half near the surface, within 8 voxels (L1) of the dilated input, half
     anywhere outside) and near-surface inside/outside pairs at +-offset along the oriented normals,
     with offset = offset_fraction x the flood-fill spacing (a length derived from the sampling
-    density). tree / gap: a kd-tree of `points_unit` and its sampling gap, to reuse."""
+    density), at most max_offset (unit frame; None: no cap). tree / gap: a kd-tree of
+    `points_unit` and its sampling gap, to reuse."""
     outside, blocked, spacing, origin = outside_mask(points_unit, gap=gap)
     tree = tree if tree is not None else cKDTree(points_unit)
     near = outside & ndimage.binary_dilation(blocked, iterations=8)
@@ -303,9 +312,30 @@ def space_labels(points_unit: np.ndarray, rng: np.random.Generator, n_free: int 
     free = np.concatenate(pools).astype(np.float32) if pools else np.zeros((0, 3), np.float32)
     normals = oriented_normals(points_unit, outside, spacing, origin, tree=tree)
     offset = offset_fraction * 2 * spacing  # in units of the blocking radius (2 voxels)
-    free_distance = tree.query(free, k=1, workers=-1)[0].astype(np.float32) if len(free) else np.zeros(0, np.float32)
+    if max_offset is not None:
+        offset = min(offset, max_offset)
+    free_distance = distance_to_points(points_unit, free, tree, exact_within=0.05 * float(np.ptp(points_unit, 0).max()))
     return SpaceLabels(free, free_distance, (points_unit - offset * normals).astype(np.float32),
                        (points_unit + offset * normals).astype(np.float32), spacing, offset, normals)
+
+
+def distance_to_points(points: np.ndarray, queries: np.ndarray, tree: cKDTree, exact_within: float,
+                       subsample: int = 16) -> np.ndarray:
+    """(M,) float32 distance from each of (M, 3) `queries` to the nearest of (N, 3) `points` (same
+    units; tree: their kd-tree): exact up to `exact_within`, beyond it the distance to a fixed random
+    1-in-`subsample` of the points, which is longer by at most that subsample's spacing.
+
+    Why: a kd-tree's nearest search far from its points visits many leaves; the free-space points
+    anywhere outside are mostly far, and their exact distances took ~6 s of the set-up at 60k points
+    (~2.2 s this way, exact within 5 % of the extent), while their hinge margin only grows with the distance (`free_margin`)."""
+    if len(queries) == 0:
+        return np.zeros(0, np.float32)
+    d = tree.query(queries, k=1, workers=-1, distance_upper_bound=exact_within)[0]
+    far = ~np.isfinite(d)
+    if far.any():
+        keep = np.random.default_rng(0).choice(len(points), max(1, len(points) // subsample), replace=False)
+        d[far] = cKDTree(points[keep]).query(queries[far], k=1, workers=-1)[0]
+    return d.astype(np.float32)
 
 
 def classification_level(u: np.ndarray, inside: np.ndarray) -> float:
@@ -417,7 +447,10 @@ class SparseOcc(Method):
         self.free = self.near = None
         labels = None
         if s.free_space_weight > 0 or s.near_surface_weight > 0:
-            labels = space_labels(pts, rng, offset_fraction=s.near_surface_offset, tree=tree, gap=gap)
+            max_offset = s.near_surface_offset_max_mm / self.unit_mm \
+                if s.near_surface_offset_max_mm > 0 and self.unit_mm else None
+            labels = space_labels(pts, rng, offset_fraction=s.near_surface_offset, tree=tree, gap=gap,
+                                  max_offset=max_offset)
             if s.free_space_weight > 0 and len(labels.free):
                 self.free = torch.from_numpy(labels.free).to(device)
                 # hinge margins: half the distance to the data (capped) and half the normal offset
