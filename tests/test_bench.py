@@ -397,6 +397,14 @@ def test_sweep_report_floors_ratio_speed_and_plot(tmp_path):
     worse = [{**r, "hausdorff_mm": 3.5} if r["variant"] == "n60000-noise0.3" and r["kind"] == "pipeline" else r for r in rows]
     assert next(s for s in bench.sweep_summary(worse) if s["variant"] == "n60000-noise0.3")["floor_met"] is False
     assert bench.speed_ratio(bench.sweep_summary(rows)) == {"default_s": 40.0, "poisson_s": 10.0, "ratio": 4.0}
+    # the sternum phantom's separation floor: CD-L1 and HD met, but 15 of 18 separable ribs isolated
+    sternum = "sternum-n60000-noise0.3"
+    judged = [{**r, "status": "ok", "cd_l1_mm": 0.31, "hausdorff_mm": 1.0} if r["variant"] == sternum and r["kind"] == "poisson"
+              else r for r in rows]
+    verdict = next(s for s in bench.sweep_summary(judged) if s["variant"] == sternum)
+    assert verdict["floor_met"] is False and verdict["floor"].endswith("every separable rib its own part")
+    separated = [{**r, "n_isolated": 18} if r["variant"] == sternum and r["kind"] == "pipeline" else r for r in judged]
+    assert next(s for s in bench.sweep_summary(separated) if s["variant"] == sternum)["floor_met"] is True
 
     out = bench.write_outputs(tmp_path, rows, meta={"mode": "sweep"})
     text = out["markdown"]

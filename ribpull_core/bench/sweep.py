@@ -62,15 +62,19 @@ def case_title(r: dict) -> str:
     return out
 
 
-def floor_of(r: dict) -> tuple[float, bool, float | None, str]:
-    """(CD-L1 ratio bound, HD must not exceed the baseline's, HD bound in mm or None, text) of a case."""
+def floor_of(r: dict) -> tuple[float, bool, float | None, bool, str]:
+    """(CD-L1 ratio bound, HD must not exceed the baseline's, HD bound in mm or None, every
+    separable rib must be its own component, text) of a case. The separation floor (issue 9) is
+    the sternum phantom's: its ribs come within 1.5-3 mm of the cartilages."""
+    separation = bool(r.get("sternum"))
+    also = ", every separable rib its own part" if separation else ""
     if r.get("input_kind") == "mask":
         x = FLOOR_RATIO_LABEL_MAPS
-        return x, True, None, f"CD-L1 ≤ {x:g}× mc_taubin, HD ≤ mc_taubin's"
+        return x, True, None, separation, f"CD-L1 ≤ {x:g}× mc_taubin, HD ≤ mc_taubin's" + also
     n, noise = int(num(r.get("n_points"))), num(r.get("noise_mm"))
     x = FLOOR_RATIO_MANY_POINTS if n > FLOOR_POINTS_SPLIT else FLOOR_RATIO_FEW_POINTS
     hd = FLOOR_HD_MM if (n, noise) == FLOOR_HD_CASE and not num(r.get("outlier_fraction") or 0) > 0 else None
-    return x, False, hd, f"CD-L1 ≤ {x:.1f}× Poisson" + (f", HD ≤ {hd:g} mm" if hd is not None else "")
+    return x, False, hd, separation, f"CD-L1 ≤ {x:.1f}× Poisson" + (f", HD ≤ {hd:g} mm" if hd is not None else "") + also
 
 
 def _mean(rows: list[dict], col: str) -> float:
@@ -100,7 +104,7 @@ def sweep_summary(rows: list[dict]) -> list[dict]:
         first = case_rows[0]
         d = _side([r for r in case_rows if is_default(r)], "default_")
         b = _side([r for r in case_rows if is_baseline(r)], "baseline_")
-        ratio_max, hd_vs_baseline, hd_max, text = floor_of(first)
+        ratio_max, hd_vs_baseline, hd_max, separation, text = floor_of(first)
         ratio = d["default_cd_l1_mm"] / b["baseline_cd_l1_mm"] if finite(b["baseline_cd_l1_mm"]) and b["baseline_cd_l1_mm"] > 0 else float("nan")
         met = None
         if finite(ratio) and finite(d["default_hausdorff_mm"]):
@@ -109,6 +113,8 @@ def sweep_summary(rows: list[dict]) -> list[dict]:
                 met = met and d["default_hausdorff_mm"] <= b["baseline_hausdorff_mm"]
             if hd_max is not None:
                 met = met and d["default_hausdorff_mm"] <= hd_max
+            if separation:
+                met = met and finite(d["default_n_isolated"]) and d["default_n_isolated"] >= d["default_n_separable"]
         out.append({"case": case_title(first), "variant": key[1], "group": key[0], "input_kind": first.get("input_kind"),
                     "n_points": first.get("n_points"), "noise_mm": first.get("noise_mm"),
                     "outlier_fraction": first.get("outlier_fraction"), "spacing_mm": first.get("spacing_mm"),
