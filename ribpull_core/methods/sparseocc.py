@@ -187,8 +187,8 @@ def default_config() -> SparseOccConfig:
     The near-surface hinges sit half a sampling gap off the points but at most 1 mm: at 10k points
     half a gap is 3 mm, deeper than a rib's 2.5-3.5 mm half-thickness, so "inside" points landed
     beyond the far wall and the ribs merged (5k / 0 mm: CD-L1 1.455 -> 0.938 mm; 10k / 0.3 mm:
-    0.833 -> 0.643 mm, Poisson 0.763; 60k unchanged; 300k samples, benchmarks/offset_cap_ab.py).
-    Measured in docs/benchmarks.md (benchmarks/pull_targets_ab.py)."""
+    0.833 -> 0.643 mm, Poisson 0.763; 60k unchanged; 300k samples per side). Measured in
+    docs/benchmarks.md (benchmarks/pull_targets_ab.py, benchmarks/offset_cap_ab.py)."""
     return SparseOccConfig(
         field=FieldConfig(network="grid", grid_levels=8, grid_log2_table=18, grid_max_resolution=256, grid_lr=5e-3,
                           grid_lr_label_map=2e-2, grid_finest_cell=1.0, grid_finest_cell_label_map=1.5),
