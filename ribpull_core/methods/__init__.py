@@ -42,12 +42,14 @@ class RunPreset:
 #: default meshes at 256 cells, about half a cell of its field's finest grid level at 60k points: 384
 #: was as accurate (60k / 0.3 mm points CD-L1 0.425 vs 0.423 mm, 1.5 mm label map 0.433 both, 20k
 #: 0.545 vs 0.540, 5k 1.461 vs 1.454; 300k samples) and took 3x the mesh stage (8.4 -> 2.4 s at 60k).
-#: paper keeps the field's own mesh (no refinement).
+#: paper keeps the field's own mesh (no refinement). smoke meshes at 96 cells (~3 mm on the
+#: phantom): at 64 (4.5 mm) a rib's 5 mm-thick end could fall between the marching-cubes samples
+#: and the rib came out in two pieces (tests/test_pipeline.py, 4 ribs from 12k points).
 RUN_PRESETS = {
     "default": RunPreset("sparseocc", 256, LabelMapConfig(boundary_sigma_mm=LABEL_MAP_SIGMA_MM, band_voxels=2.0),
                          RefineConfig()),
     "paper": RunPreset("sparseocc", 256, LabelMapConfig(), None),
-    "smoke": RunPreset("sparseocc", 64, LabelMapConfig(boundary_sigma_mm=LABEL_MAP_SIGMA_MM, band_voxels=2.0),
+    "smoke": RunPreset("sparseocc", 96, LabelMapConfig(boundary_sigma_mm=LABEL_MAP_SIGMA_MM, band_voxels=2.0),
                        RefineConfig()),
 }
 
