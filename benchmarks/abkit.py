@@ -44,51 +44,14 @@ def fit_default(points_path: Path, outdir: Path, change=None, labels=None):
         return trimesh.load(outdir / "mesh.ply", force="mesh"), time.perf_counter() - t
 
 
-def poisson_baseline(points_mm):
-    """Screened Poisson on flood-fill-oriented normals (the bench's baseline); (mesh mm, seconds)."""
-    from ribpull_core.bench.baselines import flood_fill_normals, poisson_mesh
-
-    t = time.perf_counter()
-    mesh = poisson_mesh(points_mm, flood_fill_normals(points_mm))
-    return mesh, time.perf_counter() - t
-
-
-def score_cell(mesh, truth_mesh, samples: int) -> tuple[float, str]:
-    """(CD-L1 mm, "CD-L1 / HD / parts" cell) of a mesh against the true surface, `samples` per side."""
-    from ribpull_core.mesh import count_components
-    from ribpull_core.metrics import surface_metrics
-
-    s = surface_metrics(mesh, truth_mesh, n_samples=samples, tau_mm=1.0, seed=0)
-    return s["cd_l1_mm"], f"{s['cd_l1_mm']:.3f} / {s['hausdorff_mm']:.2f} / {count_components(mesh)}"
-
-
 def case_arguments(doc: str, default_cases: tuple[str, ...]):
-    """The A/B scripts' command line: --cases POINTS:NOISE_MM ..., --samples, --seed."""
+    """The A/B scripts' command line: --cases (bench_case specs, e.g. POINTS:NOISE_MM), --samples."""
     import argparse
 
     ap = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--cases", nargs="+", default=list(default_cases), help="POINTS:NOISE_MM pairs")
+    ap.add_argument("--cases", nargs="+", default=list(default_cases), help="see abkit.bench_case")
     ap.add_argument("--samples", type=int, default=1_000_000, help="samples per side against the truth")
-    ap.add_argument("--seed", type=int, default=0)
-    return ap.parse_args()
-
-
-def phantom_cases(args, workdir: Path):
-    """(phantom, cases): the phantom of args.seed (its `.mesh` is the true surface, mm) and an
-    iterator of (n_points, noise_mm, cloud, points_path) for each of args.cases, the phantom sampled
-    with that many points and that much Gaussian noise (mm), written under workdir."""
-    from ribpull_core.io import write_point_cloud
-    from ribpull_core.phantom import PhantomConfig, make_phantom, sample_surface
-
-    phantom = make_phantom(PhantomConfig(seed=args.seed))
-
-    def cases():
-        for spec in args.cases:
-            n, noise = int(spec.split(":")[0]), float(spec.split(":")[1])
-            cloud = sample_surface(phantom, n, noise, seed=args.seed + 1)
-            yield n, noise, cloud, write_point_cloud(Path(workdir) / f"points_{n}_{noise}.ply", cloud)
-
-    return phantom, cases()
+    return ap
 
 
 def bench_case(spec: str, workdir: Path, seed: int = 0):
@@ -106,25 +69,43 @@ def bench_case(spec: str, workdir: Path, seed: int = 0):
 
 
 def baseline_for(case):
-    """(name, mesh mm, seconds) of a case's bench baseline: marching cubes + 20 Taubin iterations
-    for label maps, screened Poisson on flood-fill normals for point clouds."""
-    from ribpull_core.bench.baselines import mask_marching_cubes
+    """(name, mesh mm, seconds) of a case's bench baseline, built as `ribpull bench` builds it
+    (bench.tasks.classical_mesh): marching cubes + 20 Taubin iterations for label maps, screened
+    Poisson on flood-fill normals with the pipeline's clean-up for point clouds."""
+    from ribpull_core.bench.plan import baseline_kind
+    from ribpull_core.bench.tasks import classical_mesh
     from ribpull_core.io import load_point_cloud
 
     cloud = load_point_cloud(Path(case.input_path), labels=list(case.labels) if case.labels else None)
-    if case.input_kind == "mask":
-        t = time.perf_counter()
-        mesh = mask_marching_cubes(cloud, taubin_iterations=20)
-        return "marching cubes + 20 Taubin", mesh, time.perf_counter() - t
-    return ("screened Poisson", *poisson_baseline(cloud.points))
+    t = time.perf_counter()
+    mesh, _ = classical_mesh(cloud, baseline_kind(case.input_kind))
+    name = {"poisson": "screened Poisson", "mc_taubin": "marching cubes + 20 Taubin"}[baseline_kind(case.input_kind)]
+    return name, mesh, time.perf_counter() - t
 
 
 def score_case(case, mesh, samples: int) -> dict:
     """The bench's scores of a mesh (mm) on a phantom case: cd_l1_mm, hausdorff_mm,
     mesh_components, n_isolated / n_separable (ribs that are their own component)."""
-    import dataclasses
-
     from ribpull_core.bench.score import score_separation, score_surface
 
     row = dataclasses.asdict(case)
     return {**score_surface(row, mesh, 1.0, samples, 0), **score_separation(row, mesh)}
+
+
+def score_cell(score: dict) -> str:
+    """A score_case result as a table cell: "CD-L1 / HD / parts" (mm, mm, mesh components)."""
+    return f"{score['cd_l1_mm']:.3f} / {score['hausdorff_mm']:.2f} / {score['mesh_components']}"
+
+
+TABLE_HEADER = ("| case | run | CD-L1 / HD / parts | isolated / separable | s | CD-L1 / baseline |\n"
+                "|---|---|---|---|---:|---:|")
+
+
+def print_runs(spec: str, case, runs, samples: int) -> None:
+    """Score each (name, mesh mm, seconds) of `runs` on `case` (score_case, `samples` per side) and
+    print it as a row under TABLE_HEADER; runs[0] is the baseline the last column divides by."""
+    scores = [score_case(case, mesh, samples) for _, mesh, _ in runs]
+    base = scores[0]["cd_l1_mm"]
+    for (name, _, seconds), s in zip(runs, scores):
+        sep = f"{s['n_isolated']} / {s['n_separable']}" if "n_isolated" in s else ""
+        print(f"| {spec} | {name} | {score_cell(s)} | {sep} | {seconds:.0f} | {s['cd_l1_mm'] / base:.2f} |", flush=True)

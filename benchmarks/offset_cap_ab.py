@@ -14,23 +14,27 @@ previous default).
 
 from __future__ import annotations
 
-import argparse
 import tempfile
 from pathlib import Path
 
-from abkit import baseline_for, bench_case, config_change, fit_default, score_case
+from abkit import (
+    TABLE_HEADER,
+    baseline_for,
+    bench_case,
+    case_arguments,
+    config_change,
+    fit_default,
+    print_runs,
+)
 
 DEFAULT_CASES = ("5000:0", "10000:0.3", "10000:1.0", "60000:0.3", "sternum:60000:0.3")
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--cases", nargs="+", default=list(DEFAULT_CASES), help="see abkit.bench_case")
+    ap = case_arguments(__doc__, DEFAULT_CASES)
     ap.add_argument("--caps", nargs="+", type=float, default=[0.0], help="offset caps to run beside the default (mm)")
-    ap.add_argument("--samples", type=int, default=1_000_000, help="samples per side against the truth")
     args = ap.parse_args()
-    print("| case | run | CD-L1 / HD / parts | isolated / separable | s | CD-L1 / baseline |")
-    print("|---|---|---|---|---:|---:|")
+    print(TABLE_HEADER)
     with tempfile.TemporaryDirectory() as tmp:
         for spec in args.cases:
             case = bench_case(spec, Path(tmp))
@@ -42,12 +46,7 @@ def main() -> None:
                 mesh, seconds = fit_default(Path(case.input_path), Path(tmp) / f"{case.name}-cap{cap:g}", change,
                                             labels=case.labels)
                 runs.append((f"cap {cap:g} mm" if cap > 0 else "no cap", mesh, seconds))
-            scores = [score_case(case, mesh, args.samples) for _, mesh, _ in runs]
-            base = scores[0]["cd_l1_mm"]
-            for (name, _, seconds), s in zip(runs, scores):
-                sep = f"{s['n_isolated']} / {s['n_separable']}" if "n_isolated" in s else ""
-                print(f"| {spec} | {name} | {s['cd_l1_mm']:.3f} / {s['hausdorff_mm']:.2f} / {s['mesh_components']} "
-                      f"| {sep} | {seconds:.0f} | {s['cd_l1_mm'] / base:.2f} |", flush=True)
+            print_runs(spec, case, runs, args.samples)
 
 
 if __name__ == "__main__":

@@ -10,6 +10,7 @@ import math
 import numpy as np
 import pytest
 import torch
+from scipy.spatial import cKDTree
 
 from ribpull_core.errors import JobCanceled
 from ribpull_core.fields import build_module
@@ -143,8 +144,6 @@ def test_free_space_distances_are_exact_near_and_an_upper_bound_far():
     rng = np.random.default_rng(3)
     pts = sphere_points(20_000, 0.5)
     queries = rng.uniform(-1.2, 1.2, (5000, 3))
-    from scipy.spatial import cKDTree
-
     tree = cKDTree(pts)
     exact = tree.query(queries, k=1)[0]
     d = distance_to_points(pts, queries, tree, exact_within=0.2)

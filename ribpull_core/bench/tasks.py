@@ -85,34 +85,45 @@ def run_pipeline_task(task: dict, sampler, timer) -> dict:
     return row
 
 
-def run_classical_task(task: dict, sampler, timer) -> dict:
-    """Screened Poisson on the points (with the pipeline's clean-up of unsupported pieces), or
-    marching cubes on the mask (plain, or with Taubin smoothing for "mc_taubin"); then the pipeline's
-    skeleton and the scoring. Returns the row's columns."""
-    from ..frame import UnitFrame
-    from ..io import load_point_cloud
+def classical_mesh(cloud, kind: str, timer=None) -> tuple:
+    """(mesh mm, note) of a classical baseline on a loaded cloud (io.PointCloud, mm): "poisson" is
+    screened Poisson on flood-fill-oriented normals with the pipeline's clean-up of unsupported
+    pieces; "mask_mc" / "mc_taubin" is marching cubes on the cloud's mask, plain or with
+    TAUBIN_ITERATIONS Taubin passes. timer (run.StageTimer, optional) times normals / fit / mesh."""
+    import contextlib
+
     from ..mesh import remove_unsupported_components
     from ..pipeline import support_distance_mm
+
+    stage = timer or (lambda name: contextlib.nullcontext())
+    if kind == "poisson":
+        with stage("normals"):
+            normals = flood_fill_normals(cloud.points)
+        with stage("fit"):
+            mesh = poisson_mesh(cloud.points, normals)
+        with stage("mesh"):
+            mesh, cleanup = remove_unsupported_components(mesh, cloud.points, support_distance_mm(cloud.points))
+        return mesh, (f"depth {POISSON_DEPTH}, flood-fill-oriented PCA normals (input normals ignored); "
+                      f"removed {cleanup['removed_unsupported']} unsupported + {cleanup['removed_cavities']} cavity components")
+    taubin = TAUBIN_ITERATIONS if kind == "mc_taubin" else 0
+    with stage("mesh"):
+        mesh = mask_marching_cubes(cloud, taubin_iterations=taubin)
+    return mesh, "marching cubes at 0.5 on the binary mask of the selected labels" + (
+        f", then {taubin} Taubin passes (trimesh filter_taubin, lambda = nu = 0.5)" if taubin else "")
+
+
+def run_classical_task(task: dict, sampler, timer) -> dict:
+    """A classical baseline (classical_mesh: screened Poisson on the points, or marching cubes on
+    the mask, plain or Taubin-smoothed for "mc_taubin"); then the pipeline's skeleton and the
+    scoring. Returns the row's columns."""
+    from ..frame import UnitFrame
+    from ..io import load_point_cloud
 
     case, spec, rundir = task["case"], task["spec"], Path(task["rundir"])
     row: dict = {"fit_method": spec["kind"]}
     with timer("load"):
         cloud = load_point_cloud(Path(case["input_path"]), labels=case_labels(case))
-    if spec["kind"] == "poisson":
-        with timer("normals"):
-            normals = flood_fill_normals(cloud.points)
-        with timer("fit"):
-            mesh = poisson_mesh(cloud.points, normals)
-        with timer("mesh"):
-            mesh, cleanup = remove_unsupported_components(mesh, cloud.points, support_distance_mm(cloud.points))
-        row["note"] = (f"depth {POISSON_DEPTH}, flood-fill-oriented PCA normals (input normals ignored); "
-                       f"removed {cleanup['removed_unsupported']} unsupported + {cleanup['removed_cavities']} cavity components")
-    else:
-        taubin = TAUBIN_ITERATIONS if spec["kind"] == "mc_taubin" else 0
-        with timer("mesh"):
-            mesh = mask_marching_cubes(cloud, taubin_iterations=taubin)
-        row["note"] = "marching cubes at 0.5 on the binary mask of the selected labels" + (
-            f", then {taubin} Taubin passes (trimesh filter_taubin, lambda = nu = 0.5)" if taubin else "")
+    mesh, row["note"] = classical_mesh(cloud, spec["kind"], timer)
     with timer("export"):
         mesh.export(rundir / "mesh.ply")
     with timer("skeleton"):
