@@ -364,7 +364,7 @@ def _refined(mesh, points_mm: np.ndarray, config, plan):
     from .refine import refine_vertices
 
     t0 = time.perf_counter()
-    vertices, summary = refine_vertices(mesh.vertices, points_mm, config, plan)
+    vertices, summary = refine_vertices(mesh.vertices, points_mm, config, plan, faces=mesh.faces)
     out = trimesh.Trimesh(vertices, mesh.faces, process=False)
     out.metadata.update(mesh.metadata)
     return out, {**summary, "seconds": round(time.perf_counter() - t0, 3)}

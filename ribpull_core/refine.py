@@ -5,9 +5,12 @@ zero level set is a smoothed version of the sampled surface. After meshing, ever
 projected onto a moving-least-squares surface of the input points (`quadrics`), patches of a
 fixed physical radius: large enough to average the sample noise over ~10-60 points, smaller than a
 rib's cross-section so that a patch stays on one side of the bone. The mesh's connectivity (and so
-its components, holes and watertightness) is the field's; only vertex positions change, each by at
-most `max_shift_gaps` sampling gaps (a vertex whose projection lands farther stays where the field
-put it: a patch there does not describe the surface, e.g. between two nearby structures).
+its components, holes and watertightness) is the field's; only vertex positions change. A vertex
+moves onto the patches only when that is at most `max_shift_gaps` sampling gaps away: farther, a
+patch there does not describe the surface (between two nearby structures, or a bump of the field
+the points do not support). Those vertices are then faired (`fair_vertices`): moved to the smooth
+(thin-plate) surface that joins the projected vertices around them, instead of being left where
+the field put them; a field bump a few mm high otherwise set the mesh's Hausdorff distance.
 
 Units: millimetres throughout (the input's own frame).
 """
@@ -17,6 +20,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
+from scipy.sparse.linalg import splu
 from scipy.spatial import cKDTree
 
 from .config import RefineConfig
@@ -63,9 +69,10 @@ def plan_refinement(points_mm: np.ndarray, config: RefineConfig, tree: cKDTree |
                     n_probe: int = 4000) -> RefinePlan:
     """(N, 3) input points in mm -> the RefinePlan, from patches at a strided probe of at most
     ~n_probe points. Inputs too sparse (a patch's points spread farther than config.max_radius_mm:
-    such a patch spans the rib's curvature and would flatten it) or too noisy (the points lie more
-    than config.max_residual_mm RMS off their patches: a patch over so few of them would put back
-    noise the field smoothed out) are not refined."""
+    such a patch spans the rib's curvature and would flatten it) or too noisy for their density (the
+    points' RMS distance off their patches over sqrt(k), the noise a patch of k of them keeps, is
+    more than config.max_patch_noise_mm: such patches would put back noise the field smoothed out)
+    are not refined."""
     pts = np.asarray(points_mm, dtype=np.float64)
     tree = tree if tree is not None else cKDTree(pts)
     probe = np.arange(0, len(pts), max(1, len(pts) // n_probe))
@@ -73,19 +80,22 @@ def plan_refinement(points_mm: np.ndarray, config: RefineConfig, tree: cKDTree |
     residual = float(np.median(fit_local_quadrics(pts, k=k, tree=tree, at=probe).residual))
     if radius > config.max_radius_mm:
         reason = f"input too sparse: {k} points span {radius:.1f} mm, over the {config.max_radius_mm} mm a patch may cover"
-    elif residual > config.max_residual_mm:
-        reason = (f"input too noisy: the points lie {residual:.2f} mm (RMS) off their patches, over "
-                  f"{config.max_residual_mm} mm")
+    elif residual / np.sqrt(k) > config.max_patch_noise_mm:
+        reason = (f"input too noisy: the points lie {residual:.2f} mm (RMS) off their patches, which "
+                  f"leaves {residual / np.sqrt(k):.2f} mm in a patch of {k}, over {config.max_patch_noise_mm} mm")
     else:
         reason = None
     return RefinePlan(k, radius, residual, reason)
 
 
 def refine_vertices(vertices_mm: np.ndarray, points_mm: np.ndarray, config: RefineConfig,
-                    plan: RefinePlan | None = None, tree: cKDTree | None = None) -> tuple[np.ndarray, dict]:
+                    plan: RefinePlan | None = None, tree: cKDTree | None = None,
+                    faces: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
     """(V, 3) mesh vertices and (N, 3) input points, both mm -> ((V, 3) refined vertices in mm, a
     summary for metrics.json). plan: the input's `plan_refinement` (made here when not given); where
-    it does not apply the vertices come back unchanged, and the summary says why."""
+    it does not apply the vertices come back unchanged, and the summary says why. faces: the mesh's
+    (F, 3) triangles; with them (and config.fair_order > 0) the vertices that did not move onto the
+    patches are faired between those that did (`fair_vertices`)."""
     pts = np.asarray(points_mm, dtype=np.float64)
     verts = np.asarray(vertices_mm, dtype=np.float64)
     tree = tree if tree is not None else cKDTree(pts)
@@ -98,5 +108,46 @@ def refine_vertices(vertices_mm: np.ndarray, points_mm: np.ndarray, config: Refi
     shift = np.linalg.norm(projected - verts, axis=1)
     moved = shift <= config.max_shift_gaps * gap
     out = np.where(moved[:, None], projected, verts)
+    n_faired = 0
+    if faces is not None and config.fair_order > 0 and not moved.all():
+        out, n_faired = fair_vertices(out, faces, ~moved, order=config.fair_order)
     return out, {**plan.summary(), "moved_fraction": round(float(moved.mean()), 4),
-                 "mean_shift_mm": round(float(shift[moved].mean()), 4) if moved.any() else 0.0}
+                 "mean_shift_mm": round(float(shift[moved].mean()), 4) if moved.any() else 0.0,
+                 "faired_vertices": int(n_faired)}
+
+
+def uniform_laplacian(faces: np.ndarray, n_vertices: int) -> sp.csr_matrix:
+    """(F, 3) triangles over n_vertices -> (n, n) graph Laplacian D - A of the mesh's edges (each
+    vertex's degree on the diagonal, -1 per neighbour)."""
+    f = np.asarray(faces, dtype=np.int64)
+    i, j = f.ravel(), f[:, [1, 2, 0]].ravel()  # every half-edge, both ways below
+    adjacency = sp.coo_matrix((np.ones(2 * len(i)), (np.r_[i, j], np.r_[j, i])), shape=(n_vertices, n_vertices)).tocsr()
+    adjacency.data[:] = 1.0  # an edge shared by two faces was summed twice
+    return (sp.diags(np.asarray(adjacency.sum(axis=1)).ravel()) - adjacency).tocsr()
+
+
+def fair_vertices(vertices_mm: np.ndarray, faces: np.ndarray, free: np.ndarray, order: int = 2) -> tuple[np.ndarray, int]:
+    """(V, 3) vertices (mm), (F, 3) faces and (V,) bool `free` -> ((V, 3) vertices with the free ones
+    faired, how many were). The free vertices solve L^order x = 0 (L: `uniform_laplacian`) with the
+    other vertices held where they are: order 1 is a membrane (harmonic) fill, order 2 a thin-plate
+    (biharmonic) fill that also continues the surrounding surface's slope. A connected patch of free
+    vertices that no held vertex reaches through the stencil (a whole free component) is left as it is."""
+    verts = np.asarray(vertices_mm, dtype=np.float64)
+    free = np.asarray(free, dtype=bool)
+    lap = uniform_laplacian(faces, len(verts))
+    idx = np.flatnonzero(free)
+    rows = lap[idx] if order == 1 else lap[idx] @ lap  # the stencil's rows at the free vertices only
+    held = rows[:, ~free]
+    n_patches, patch = connected_components(abs(lap[idx][:, idx]), directed=False)
+    anchored = np.zeros(n_patches, dtype=bool)
+    anchored[patch[np.asarray(abs(held).sum(axis=1)).ravel() > 0]] = True
+    keep = anchored[patch]
+    if not keep.any():
+        return verts.copy(), 0
+    solve = splu(rows[keep][:, idx[keep]].tocsc())
+    rhs = -(rows[keep][:, ~free] @ verts[~free])
+    if (~keep).any():  # unanchored free vertices stay put: they are held for the anchored ones
+        rhs -= rows[keep][:, idx[~keep]] @ verts[idx[~keep]]
+    out = verts.copy()
+    out[idx[keep]] = solve.solve(rhs)
+    return out, int(keep.sum())

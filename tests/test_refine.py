@@ -1,6 +1,7 @@
 """Vertex refinement onto the input points (ribpull_core.refine): a perturbed mesh of a noisy
-sphere comes back onto the true sphere with its faces untouched; a sparse input and a vertex with
-no surface under it are left alone; the run presets switch it on (default, smoke) and off (paper)."""
+sphere comes back onto the true sphere with its faces untouched; a sparse input is left alone; a
+vertex with no surface under it is not projected, and faired between its neighbours when the faces
+are given; the run presets switch it on (default, smoke) and off (paper)."""
 
 import numpy as np
 import pytest
@@ -9,7 +10,7 @@ from scipy.spatial import cKDTree
 
 from ribpull_core.config import RefineConfig
 from ribpull_core.methods import build_fit_config
-from ribpull_core.refine import patch_size, plan_refinement, refine_vertices
+from ribpull_core.refine import fair_vertices, patch_size, plan_refinement, refine_vertices
 
 RADIUS_MM = 20.0
 
@@ -57,13 +58,25 @@ def test_patch_size_follows_the_radius_within_its_bounds():
 
 
 def test_noisy_input_is_left_as_meshed_and_says_why():
-    pts = _sphere_points(8000, 1.0, seed=0)  # 1 mm noise: patches over ~30 samples would add noise back
+    pts = _sphere_points(8000, 2.0, seed=0)  # 2 mm noise: ~0.3 mm of it would stay in a 32-point patch
     plan = plan_refinement(pts, RefineConfig())
-    assert plan.applies is False and "too noisy" in plan.reason and plan.patch_residual_mm > 0.5
+    assert plan.applies is False and "too noisy" in plan.reason
+    assert plan.patch_residual_mm / np.sqrt(plan.neighbours) > RefineConfig().max_patch_noise_mm
     mesh = _perturbed_sphere_mesh(0.4, seed=1)
     out, summary = refine_vertices(mesh.vertices, pts, RefineConfig(), plan)
     assert summary["applied"] is False and summary["reason"] == plan.reason
     np.testing.assert_array_equal(out, mesh.vertices)
+
+
+def test_noise_that_a_patch_averages_out_is_refined():
+    pts = _sphere_points(8000, 1.0, seed=0)  # 1 mm noise, but 32 samples per 4 mm patch
+    plan = plan_refinement(pts, RefineConfig())
+    assert plan.applies is True and plan.neighbours == RefineConfig().max_neighbours, plan.summary()
+    assert plan.patch_residual_mm > 0.5  # what the residual alone would have called too noisy
+    mesh = _perturbed_sphere_mesh(1.0, seed=1)  # a field that followed the noise: ~0.5 mm off
+    out, _ = refine_vertices(mesh.vertices, pts, RefineConfig(), plan, faces=mesh.faces)
+    after = _radial_error(out).mean()
+    assert after < 0.6 * _radial_error(mesh.vertices).mean() and after < 0.4 * _radial_error(pts).mean()
 
 
 def test_sparse_input_is_left_as_meshed_and_says_why():
@@ -84,6 +97,37 @@ def test_a_vertex_with_no_surface_under_it_stays_put():
     np.testing.assert_array_equal(out[0], v[0])
     assert summary["moved_fraction"] < 1.0
     assert _radial_error(out[1:]).max() < 0.05
+
+
+def test_a_bump_the_points_do_not_support_is_faired_into_the_surface():
+    pts = _sphere_points(8000, 0.0, seed=0)
+    mesh = _perturbed_sphere_mesh(0.0, seed=1)
+    v = mesh.vertices.copy()
+    ring = mesh.vertex_neighbors[0]
+    v[[0, *ring]] *= (RADIUS_MM + 5.0) / RADIUS_MM  # a bump: a vertex and its ring 5 mm out
+    out, summary = refine_vertices(v, pts, RefineConfig(), faces=mesh.faces)
+    assert summary["faired_vertices"] == 1 + len(ring) and summary["moved_fraction"] < 1.0, summary
+    assert _radial_error(out[[0, *ring]]).max() < 0.2  # back on the sphere, from 5 mm off
+    assert _radial_error(out).max() < 0.2
+    unfaired, _ = refine_vertices(v, pts, RefineConfig(fair_order=0), faces=mesh.faces)
+    np.testing.assert_array_equal(unfaired[0], v[0])
+
+
+@pytest.mark.parametrize("order", [1, 2])
+def test_fairing_holds_the_other_vertices_and_leaves_a_wholly_free_component(order):
+    a = trimesh.creation.icosphere(subdivisions=3, radius=10.0)
+    b = trimesh.creation.icosphere(subdivisions=2, radius=3.0)
+    b.apply_translation([30.0, 0, 0])
+    both = trimesh.util.concatenate([a, b])
+    v = both.vertices.copy()
+    v[0] *= 1.3  # one vertex of the big sphere out of place
+    free = np.zeros(len(v), dtype=bool)
+    free[0] = True
+    free[len(a.vertices):] = True  # every vertex of the small sphere: nothing holds it
+    out, n = fair_vertices(v, both.faces, free, order=order)
+    assert n == 1
+    np.testing.assert_array_equal(out[1:], v[1:])
+    assert abs(np.linalg.norm(out[0]) - 10.0) < 0.5 < abs(np.linalg.norm(v[0]) - 10.0)
 
 
 @pytest.mark.parametrize("preset, on", [("default", True), ("smoke", True), ("paper", False)])

@@ -10,7 +10,7 @@ from __future__ import annotations
 import dataclasses
 import importlib
 
-from ..config import FitConfig, LabelMapConfig, MeshConfig, RefineConfig
+from ..config import FitConfig, LabelMapConfig, MeshConfig, RefineConfig, SdfConfig
 from ..errors import RibPullInputError
 from .base import Method
 from .training import with_schedule
@@ -30,13 +30,16 @@ class RunPreset:
     """What a run preset picks besides the method's own preset of the same name.
 
     method: the default method; mesh_resolution: finest marching-cubes resolution; label_map:
-    label-map handling; refine: vertex refinement of the mesh onto the input points (None: off).
+    label-map handling; refine: vertex refinement of the mesh onto the input points (None: off);
+    sdf_cells: the SDF volume's voxels along the input box's longest side (point inputs; a label
+    map's SDF is on its own grid).
     """
 
     method: str
     mesh_resolution: int
     label_map: LabelMapConfig
     refine: RefineConfig | None
+    sdf_cells: int = 128
 
 
 #: default meshes at 256 cells, about half a cell of its field's finest grid level at 60k points: 384
@@ -44,13 +47,15 @@ class RunPreset:
 #: 0.545 vs 0.540, 5k 1.461 vs 1.454; 300k samples) and took 3x the mesh stage (8.4 -> 2.4 s at 60k).
 #: paper keeps the field's own mesh (no refinement). smoke meshes at 96 cells (~3 mm on the
 #: phantom): at 64 (4.5 mm) a rib's 5 mm-thick end could fall between the marching-cubes samples
-#: and the rib came out in two pieces (tests/test_pipeline.py, 4 ribs from 12k points).
+#: and the rib came out in two pieces (tests/test_pipeline.py, 4 ribs from 12k points). smoke's
+#: SDF has 64 voxels along the longest side (~5 mm on a ribcage, as coarse as its mesh): at 128 the
+#: volume was ~40% of a tiny smoke job (3.8 of 9.6 s, 4k points, 10 iterations).
 RUN_PRESETS = {
     "default": RunPreset("sparseocc", 256, LabelMapConfig(boundary_sigma_mm=LABEL_MAP_SIGMA_MM, band_voxels=2.0),
                          RefineConfig()),
     "paper": RunPreset("sparseocc", 256, LabelMapConfig(), None),
     "smoke": RunPreset("sparseocc", 96, LabelMapConfig(boundary_sigma_mm=LABEL_MAP_SIGMA_MM, band_voxels=2.0),
-                       RefineConfig()),
+                       RefineConfig(), sdf_cells=64),
 }
 
 
@@ -97,6 +102,7 @@ def build_fit_config(
         mesh_res = int(resolution)
     mesh = MeshConfig(resolution=mesh_res, coarse_resolution=min(64, mesh_res))
     return FitConfig(preset=preset, method=method, method_config=method_config, mesh=mesh,
+                     sdf=SdfConfig(cells_per_side=run.sdf_cells),
                      label_map=dataclasses.replace(run.label_map),
                      refine=None if run.refine is None else dataclasses.replace(run.refine), seed=seed)
 
