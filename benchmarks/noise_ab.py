@@ -17,44 +17,36 @@ from __future__ import annotations
 import tempfile
 from pathlib import Path
 
-from abkit import (
-    TABLE_HEADER,
-    baseline_for,
-    bench_case,
-    case_arguments,
-    config_change,
-    fit_default,
-    print_runs,
-)
+import abkit
 
 DEFAULT_CASES = ("60000:1.0", "200000:1.0")
 
 
 VARIANTS = {
-    "near-surface offset x2": config_change("sign", near_surface_offset=1.0),
-    "finest cell 2 gaps": config_change("field", grid_finest_cell=2.0),
-    "quadric targets k40": config_change("queries", target_knn=40),
+    "near-surface offset x2": abkit.config_change("sign", near_surface_offset=1.0),
+    "finest cell 2 gaps": abkit.config_change("field", grid_finest_cell=2.0),
+    "quadric targets k40": abkit.config_change("queries", target_knn=40),
 }
 
 
 def main() -> None:
     import trimesh
 
-    args = case_arguments(__doc__, DEFAULT_CASES).parse_args()
-    print(TABLE_HEADER)
+    args = abkit.case_arguments(__doc__, DEFAULT_CASES).parse_args()
+    print(abkit.TABLE_HEADER)
     with tempfile.TemporaryDirectory() as tmp:
         for spec in args.cases:
-            case = bench_case(spec, Path(tmp))
-            runs = [baseline_for(case)]
-            mesh, seconds = fit_default(Path(case.input_path), Path(tmp) / f"{case.name}-default", labels=case.labels)
+            case = abkit.bench_case(spec, Path(tmp))
+            runs = [abkit.baseline_for(case)]
+            mesh, seconds = abkit.fit_default(Path(case.input_path), Path(tmp) / f"{case.name}-default", labels=case.labels)
             runs.append(("default", mesh, seconds))
             smoothed = mesh.copy()
             trimesh.smoothing.filter_taubin(smoothed, iterations=3)
             runs.append(("default + 3 Taubin passes", smoothed, seconds))
             for i, (name, change) in enumerate(VARIANTS.items()):
-                mesh, seconds = fit_default(Path(case.input_path), Path(tmp) / f"{case.name}-{i}", change, labels=case.labels)
+                mesh, seconds = abkit.fit_default(Path(case.input_path), Path(tmp) / f"{case.name}-{i}", change, labels=case.labels)
                 runs.append((name, mesh, seconds))
-            print_runs(spec, case, runs, args.samples)
+            abkit.print_runs(spec, case, runs, args.samples)
 
 
 if __name__ == "__main__":

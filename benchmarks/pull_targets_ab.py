@@ -15,31 +15,23 @@ from __future__ import annotations
 import tempfile
 from pathlib import Path
 
-from abkit import (
-    TABLE_HEADER,
-    baseline_for,
-    bench_case,
-    case_arguments,
-    config_change,
-    fit_default,
-    print_runs,
-)
+import abkit
 
 DEFAULT_CASES = ("5000:0.3", "20000:0.3", "60000:0.0", "60000:0.3", "60000:1.0")
 
 
 def main() -> None:
-    args = case_arguments(__doc__, DEFAULT_CASES).parse_args()
-    print(TABLE_HEADER)
+    args = abkit.case_arguments(__doc__, DEFAULT_CASES).parse_args()
+    print(abkit.TABLE_HEADER)
     with tempfile.TemporaryDirectory() as tmp:
         for spec in args.cases:
-            case = bench_case(spec, Path(tmp))
-            runs = [baseline_for(case)]
+            case = abkit.bench_case(spec, Path(tmp))
+            runs = [abkit.baseline_for(case)]
             for targets in ("nearest", "quadric"):
-                mesh, seconds = fit_default(Path(case.input_path), Path(tmp) / f"{case.name}-{targets}",
-                                            config_change("queries", targets=targets), labels=case.labels)
+                mesh, seconds = abkit.fit_default(Path(case.input_path), Path(tmp) / f"{case.name}-{targets}",
+                                            abkit.config_change("queries", targets=targets), labels=case.labels)
                 runs.append((f"targets={targets}", mesh, seconds))
-            print_runs(spec, case, runs, args.samples)
+            abkit.print_runs(spec, case, runs, args.samples)
 
 
 if __name__ == "__main__":
