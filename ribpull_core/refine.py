@@ -144,7 +144,10 @@ def fair_vertices(vertices_mm: np.ndarray, faces: np.ndarray, free: np.ndarray, 
     keep = anchored[patch]
     if not keep.any():
         return verts.copy(), 0
-    solve = splu(rows[keep][:, idx[keep]].tocsc())
+    try:
+        solve = splu(rows[keep][:, idx[keep]].tocsc())
+    except RuntimeError:  # a singular stencil (a degenerate, e.g. non-manifold, patch): leave them
+        return verts.copy(), 0
     rhs = -(rows[keep][:, ~free] @ verts[~free])
     if (~keep).any():  # unanchored free vertices stay put: they are held for the anchored ones
         rhs -= rows[keep][:, idx[~keep]] @ verts[idx[~keep]]
