@@ -136,21 +136,21 @@ def fair_vertices(vertices_mm: np.ndarray, faces: np.ndarray, free: np.ndarray, 
     free = np.asarray(free, dtype=bool)
     lap = uniform_laplacian(faces, len(verts))
     idx = np.flatnonzero(free)
-    rows = lap[idx] if order == 1 else lap[idx] @ lap  # the stencil's rows at the free vertices only
-    held = rows[:, ~free]
-    n_patches, patch = connected_components(abs(lap[idx][:, idx]), directed=False)
+    lap_free = lap[idx]
+    rows = lap_free if order == 1 else lap_free @ lap  # the stencil's rows at the free vertices only
+    n_patches, patch = connected_components(abs(lap_free[:, idx]), directed=False)
     anchored = np.zeros(n_patches, dtype=bool)
-    anchored[patch[np.asarray(abs(held).sum(axis=1)).ravel() > 0]] = True
+    anchored[patch[np.asarray(abs(rows[:, ~free]).sum(axis=1)).ravel() > 0]] = True
     keep = anchored[patch]
     if not keep.any():
         return verts.copy(), 0
+    rows = rows[keep]
     try:
-        solve = splu(rows[keep][:, idx[keep]].tocsc())
+        solve = splu(rows[:, idx[keep]].tocsc())
     except RuntimeError:  # a singular stencil (a degenerate, e.g. non-manifold, patch): leave them
         return verts.copy(), 0
-    rhs = -(rows[keep][:, ~free] @ verts[~free])
-    if (~keep).any():  # unanchored free vertices stay put: they are held for the anchored ones
-        rhs -= rows[keep][:, idx[~keep]] @ verts[idx[~keep]]
+    # everything else is held: the fixed vertices, and free ones of unanchored patches where they are
+    others = np.setdiff1d(np.arange(len(verts)), idx[keep], assume_unique=True)
     out = verts.copy()
-    out[idx[keep]] = solve.solve(rhs)
+    out[idx[keep]] = solve.solve(-(rows[:, others] @ verts[others]))
     return out, int(keep.sum())
