@@ -93,9 +93,10 @@ def test_finite_difference_gradient_matches_autograd_on_a_smooth_field():
     assert torch.allclose(u1, u2) and torch.allclose(g1, g2, atol=1e-4)
 
 
-def test_grid_kernels_match_the_torch_encoding_and_its_gradient():
+@pytest.mark.parametrize("features", [2, 3])  # 2: the register-held kernels; others: the generic ones
+def test_grid_kernels_match_the_torch_encoding_and_its_gradient(features):
     torch.manual_seed(0)
-    m = GridOccupancyField(n_levels=6, log2_table=12, max_resolution=128)
+    m = GridOccupancyField(n_levels=6, features=features, log2_table=12, max_resolution=128)
     with torch.no_grad():
         m.embedding.weight.normal_()
     x = torch.rand(3000, 3) * 2.6 - 1.3  # includes points outside the domain (clamped)

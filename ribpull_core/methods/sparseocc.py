@@ -261,9 +261,11 @@ def outside_mask(points_unit: np.ndarray, block_factor: float = 1.0, max_cells: 
     for offset in _ball_offsets(block / spacing + 0.5):
         cells = np.clip(ijk + offset, 0, shape - 1)
         blocked[cells[:, 0], cells[:, 1], cells[:, 2]] = True
-    labels, _ = ndimage.label(~blocked)
+    labels, n_labels = ndimage.label(~blocked)
     border = np.unique(np.concatenate([labels[[0, -1]].ravel(), labels[:, [0, -1]].ravel(), labels[:, :, [0, -1]].ravel()]))
-    outside = np.isin(labels, border[border > 0])
+    reaches_border = np.zeros(n_labels + 1, bool)  # a lookup per label: np.isin sorts the whole volume
+    reaches_border[border[border > 0]] = True
+    outside = reaches_border[labels]
     return outside, blocked, spacing, origin - 0.5 * spacing
 
 
