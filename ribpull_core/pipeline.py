@@ -192,7 +192,7 @@ def fit_field(cloud, fit_config, device, report: _Reporter):
         known = KnownOccupancy(frame.to_unit(cloud.occupancy_points).astype(np.float32), cloud.occupancy_inside,
                                np.asarray(cloud.occupancy_distance_mm) / frame.half_extent_mm)
     field = method.fit(frame.to_unit(cloud.points).astype(np.float32), device, progress=on_fit,
-                       should_cancel=report.should_cancel, known=known)
+                       should_cancel=report.should_cancel, known=known, labels=cloud.labels)
     return field, frame
 
 

@@ -143,10 +143,12 @@ class Method(ABC):
         """{"name": network, "kwargs": {...}} for `fields.build_module` (saved with the weights)."""
 
     @abstractmethod
-    def setup(self, points_unit: np.ndarray, device: torch.device, known: KnownOccupancy | None = None) -> None:
+    def setup(self, points_unit: np.ndarray, device: torch.device, known: KnownOccupancy | None = None,
+              labels: np.ndarray | None = None) -> None:
         """Prepare everything sampled once (queries, labels, generators) for (N, 3) unit-frame points.
         Runs before `arch`, so the network may depend on the data (e.g. its sampling density).
-        `known`: occupancy the input states (label maps); methods that cannot use it ignore it."""
+        `known`: occupancy the input states (label maps); `labels`: (N,) the structure (label value)
+        of each point, when the input has them; methods that cannot use either ignore it."""
 
     def initialize(self, module: torch.nn.Module) -> None:
         """Set the freshly built module's starting state (warm start); default: its own init."""
@@ -174,11 +176,13 @@ class Method(ABC):
         progress: ProgressFn | None = None,
         should_cancel: CancelFn | None = None,
         known: KnownOccupancy | None = None,
+        labels: np.ndarray | None = None,
     ) -> FittedField:
-        """Fit to (N, 3) float unit-frame points with the shared training loop; return the field."""
+        """Fit to (N, 3) float unit-frame points (labels: (N,) their structures, optional) with the
+        shared training loop; return the field."""
         from .training import train
 
-        return train(self, points_unit, device, progress, should_cancel, known)
+        return train(self, points_unit, device, progress, should_cancel, known, labels)
 
 
 # --- shared training helpers -------------------------------------------------------------------

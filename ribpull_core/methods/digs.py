@@ -194,7 +194,7 @@ class DiGS(Method):
             },
         }
 
-    def setup(self, points_unit: np.ndarray, device: torch.device, known=None) -> None:
+    def setup(self, points_unit: np.ndarray, device: torch.device, known=None, labels=None) -> None:
         if len(points_unit) < 1:
             raise ValueError("DiGS needs at least 1 input point")
         self.rng = np.random.default_rng(self.config.seed)

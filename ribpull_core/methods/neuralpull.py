@@ -125,7 +125,7 @@ class NeuralPull(Method):
             },
         }
 
-    def setup(self, points_unit: np.ndarray, device: torch.device, known=None) -> None:
+    def setup(self, points_unit: np.ndarray, device: torch.device, known=None, labels=None) -> None:
         """Sample the queries once and keep each one's nearest input point as its target."""
         c = self.config
         if len(points_unit) < 2:

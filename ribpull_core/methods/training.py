@@ -125,7 +125,8 @@ def _make_optimizer(groups: list[dict], device: torch.device) -> torch.optim.Ada
 
 
 def train(method: Method, points_unit: np.ndarray, device: torch.device, progress: ProgressFn | None = None,
-          should_cancel: CancelFn | None = None, known: KnownOccupancy | None = None) -> FittedField:
+          should_cancel: CancelFn | None = None, known: KnownOccupancy | None = None,
+          labels: np.ndarray | None = None) -> FittedField:
     """Fit `method` to (N, 3) unit-frame points on `device`; returns the trained FittedField.
 
     Calls method.setup once (data sampled once), builds method.arch(), lets method.initialize the
@@ -138,7 +139,7 @@ def train(method: Method, points_unit: np.ndarray, device: torch.device, progres
     seed_everything(method.config.seed)
     points = np.asarray(points_unit, dtype=np.float64).reshape(-1, 3)
     check_cancel(should_cancel)
-    method.setup(points, device, known)
+    method.setup(points, device, known, labels)
     arch = method.arch()
     module = build_module(arch).to(device).train()
     method.initialize(module)

@@ -1,0 +1,38 @@
+"""The gap hinge (SignConfig.gap_weight: free space between differently labelled structures) on and
+off, beside the bench baseline of each case, scored like `ribpull bench` against the phantom's TRUE
+surface (CD-L1 / HD in mm, `--samples` per side; mesh components; separable ribs that are their own
+component).
+
+    .venv/bin/python benchmarks/gap_ab.py --samples 300000
+    .venv/bin/python benchmarks/gap_ab.py --cases sternum:60000:0.3 60000:0.3
+
+Rows: the baseline; the `default` preset (no skeleton, no preview; gap hinge on); the default with
+gap_weight 0.
+"""
+
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+
+import abkit
+
+DEFAULT_CASES = ("sternum:60000:0.3", "sternum:mask:1.5")
+
+
+def main() -> None:
+    args = abkit.case_arguments(__doc__, DEFAULT_CASES).parse_args()
+    print(abkit.TABLE_HEADER)
+    with tempfile.TemporaryDirectory() as tmp:
+        for spec in args.cases:
+            case = abkit.bench_case(spec, Path(tmp))
+            runs = [abkit.baseline_for(case)]
+            for name, change in (("default (gap on)", None), ("gap off", abkit.config_change("sign", gap_weight=0.0))):
+                mesh, seconds = abkit.fit_default(Path(case.input_path), Path(tmp) / f"{case.name}-{name[:3]}", change,
+                                                  labels=case.labels)
+                runs.append((name, mesh, seconds))
+            abkit.print_runs(spec, case, runs, args.samples)
+
+
+if __name__ == "__main__":
+    main()
