@@ -109,3 +109,23 @@ def print_runs(spec: str, case, runs, samples: int) -> None:
     for (name, _, seconds), s in zip(runs, scores):
         sep = f"{s['n_isolated']} / {s['n_separable']}" if "n_isolated" in s else ""
         print(f"| {spec} | {name} | {score_cell(s)} | {sep} | {seconds:.0f} | {s['cd_l1_mm'] / base:.2f} |", flush=True)
+
+
+def compare_variants(args, variants, extra=None) -> None:
+    """The A/B scripts' loop: for each case of args.cases (`bench_case` specs) print the bench
+    baseline and one `default` run per (name, change) of `variants` (change: a `config_change`, or
+    None for the preset as it is), scored on args.samples per side. extra(runs) may append derived
+    (name, mesh mm, seconds) runs (e.g. a post-processed copy) before the rows are printed."""
+    import tempfile
+
+    print(TABLE_HEADER)
+    with tempfile.TemporaryDirectory() as tmp:
+        for spec in args.cases:
+            case = bench_case(spec, Path(tmp))
+            runs = [baseline_for(case)]
+            for i, (name, change) in enumerate(variants):
+                mesh, seconds = fit_default(Path(case.input_path), Path(tmp) / f"{case.name}-{i}", change, labels=case.labels)
+                runs.append((name, mesh, seconds))
+            if extra is not None:
+                extra(runs)
+            print_runs(spec, case, runs, args.samples)

@@ -12,9 +12,6 @@ gap_weight 0.
 
 from __future__ import annotations
 
-import tempfile
-from pathlib import Path
-
 import abkit
 
 DEFAULT_CASES = ("sternum:60000:0.3", "sternum:mask:1.5")
@@ -22,16 +19,7 @@ DEFAULT_CASES = ("sternum:60000:0.3", "sternum:mask:1.5")
 
 def main() -> None:
     args = abkit.case_arguments(__doc__, DEFAULT_CASES).parse_args()
-    print(abkit.TABLE_HEADER)
-    with tempfile.TemporaryDirectory() as tmp:
-        for spec in args.cases:
-            case = abkit.bench_case(spec, Path(tmp))
-            runs = [abkit.baseline_for(case)]
-            for name, change in (("default (gap on)", None), ("gap off", abkit.config_change("sign", gap_weight=0.0))):
-                mesh, seconds = abkit.fit_default(Path(case.input_path), Path(tmp) / f"{case.name}-{name[:3]}", change,
-                                                  labels=case.labels)
-                runs.append((name, mesh, seconds))
-            abkit.print_runs(spec, case, runs, args.samples)
+    abkit.compare_variants(args, [("default (gap on)", None), ("gap off", abkit.config_change("sign", gap_weight=0.0))])
 
 
 if __name__ == "__main__":

@@ -14,9 +14,6 @@ gaps instead of one; eq. 1's quadric targets over 40 neighbours instead of 20).
 
 from __future__ import annotations
 
-import tempfile
-from pathlib import Path
-
 import abkit
 
 DEFAULT_CASES = ("60000:1.0", "200000:1.0")
@@ -32,21 +29,14 @@ VARIANTS = {
 def main() -> None:
     import trimesh
 
+    def taubin_copy(runs):  # runs[1] is the default (runs[0] the baseline)
+        _, mesh, seconds = runs[1]
+        smoothed = mesh.copy()
+        trimesh.smoothing.filter_taubin(smoothed, iterations=3)
+        runs.append(("default + 3 Taubin passes", smoothed, seconds))
+
     args = abkit.case_arguments(__doc__, DEFAULT_CASES).parse_args()
-    print(abkit.TABLE_HEADER)
-    with tempfile.TemporaryDirectory() as tmp:
-        for spec in args.cases:
-            case = abkit.bench_case(spec, Path(tmp))
-            runs = [abkit.baseline_for(case)]
-            mesh, seconds = abkit.fit_default(Path(case.input_path), Path(tmp) / f"{case.name}-default", labels=case.labels)
-            runs.append(("default", mesh, seconds))
-            smoothed = mesh.copy()
-            trimesh.smoothing.filter_taubin(smoothed, iterations=3)
-            runs.append(("default + 3 Taubin passes", smoothed, seconds))
-            for i, (name, change) in enumerate(VARIANTS.items()):
-                mesh, seconds = abkit.fit_default(Path(case.input_path), Path(tmp) / f"{case.name}-{i}", change, labels=case.labels)
-                runs.append((name, mesh, seconds))
-            abkit.print_runs(spec, case, runs, args.samples)
+    abkit.compare_variants(args, [("default", None), *VARIANTS.items()], extra=taubin_copy)
 
 
 if __name__ == "__main__":

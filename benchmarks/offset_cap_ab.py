@@ -14,9 +14,6 @@ previous default).
 
 from __future__ import annotations
 
-import tempfile
-from pathlib import Path
-
 import abkit
 
 DEFAULT_CASES = ("5000:0", "10000:0.3", "10000:1.0", "60000:0.3", "sternum:60000:0.3")
@@ -26,19 +23,9 @@ def main() -> None:
     ap = abkit.case_arguments(__doc__, DEFAULT_CASES)
     ap.add_argument("--caps", nargs="+", type=float, default=[0.0], help="offset caps to run beside the default (mm)")
     args = ap.parse_args()
-    print(abkit.TABLE_HEADER)
-    with tempfile.TemporaryDirectory() as tmp:
-        for spec in args.cases:
-            case = abkit.bench_case(spec, Path(tmp))
-            runs = [abkit.baseline_for(case)]
-            mesh, seconds = abkit.fit_default(Path(case.input_path), Path(tmp) / f"{case.name}-default", labels=case.labels)
-            runs.append(("default", mesh, seconds))
-            for cap in args.caps:
-                change = abkit.config_change("sign", near_surface_offset_max_mm=cap)
-                mesh, seconds = abkit.fit_default(Path(case.input_path), Path(tmp) / f"{case.name}-cap{cap:g}", change,
-                                                  labels=case.labels)
-                runs.append((f"cap {cap:g} mm" if cap > 0 else "no cap", mesh, seconds))
-            abkit.print_runs(spec, case, runs, args.samples)
+    caps = [(f"cap {cap:g} mm" if cap > 0 else "no cap", abkit.config_change("sign", near_surface_offset_max_mm=cap))
+            for cap in args.caps]
+    abkit.compare_variants(args, [("default", None), *caps])
 
 
 if __name__ == "__main__":

@@ -12,9 +12,6 @@ queries.targets differs. Times are the whole run_pipeline call and the baseline'
 
 from __future__ import annotations
 
-import tempfile
-from pathlib import Path
-
 import abkit
 
 DEFAULT_CASES = ("5000:0.3", "20000:0.3", "60000:0.0", "60000:0.3", "60000:1.0")
@@ -22,16 +19,7 @@ DEFAULT_CASES = ("5000:0.3", "20000:0.3", "60000:0.0", "60000:0.3", "60000:1.0")
 
 def main() -> None:
     args = abkit.case_arguments(__doc__, DEFAULT_CASES).parse_args()
-    print(abkit.TABLE_HEADER)
-    with tempfile.TemporaryDirectory() as tmp:
-        for spec in args.cases:
-            case = abkit.bench_case(spec, Path(tmp))
-            runs = [abkit.baseline_for(case)]
-            for targets in ("nearest", "quadric"):
-                mesh, seconds = abkit.fit_default(Path(case.input_path), Path(tmp) / f"{case.name}-{targets}",
-                                            abkit.config_change("queries", targets=targets), labels=case.labels)
-                runs.append((f"targets={targets}", mesh, seconds))
-            abkit.print_runs(spec, case, runs, args.samples)
+    abkit.compare_variants(args, [(f"targets={t}", abkit.config_change("queries", targets=t)) for t in ("nearest", "quadric")])
 
 
 if __name__ == "__main__":
