@@ -53,6 +53,11 @@ class RefineConfig:
     points 0.404 / 1.44 against 0.405 / 1.47; 1.5 mm label map 0.406 / 1.49 against 0.404 / 1.47;
     0.75x0.75x2.5 mm map 0.415 / 1.51 against 0.415 / 1.61; 20k / 0.3 mm 0.501 / 4.94 against
     0.500 / 3.77 (no HD floor there); 250 iterations left a 3.9 mm HD at 60k.
+    dense_fit_iterations: point clouds of more than dense_points points (whose field's finest
+    grid level is finer, so slower to settle) are fitted for at most this many instead: at 200k
+    points 400 iterations left HD 2.16 / 2.74 / 5.83 mm at 0 / 0.3 / 1 mm noise and 4 ribs merged
+    at 1 mm, against 0.88 / 0.89 / 4.01 mm and none at 600 (sweeps at 3107389 and dff2da3, 1M
+    samples). Label maps keep fit_iterations (their boundary points number ~100k).
 
     Chosen on the phantom (300k-sample CD-L1 of the refined mesh, mm): the best patch held ~20
     points at 60k points (4.0 mm) and ~13 at 20k (5.5 mm); patches wider than ~6 mm (10k points and
@@ -71,6 +76,8 @@ class RefineConfig:
     max_shift_gaps: float = 1.5
     fair_order: int = 2
     fit_iterations: int | None = 400
+    dense_points: int = 100_000
+    dense_fit_iterations: int | None = 600
 
 
 @dataclass

@@ -317,9 +317,12 @@ def _plan_refinement(cloud, fit_config, options: PipelineOptions):
     plan = plan_refinement(cloud.points, config)
     planned = fit_config.method_config.schedule.iterations
     # the shorter schedule was measured for the preset's own method: another method keeps its own
+    iterations = config.fit_iterations
+    if cloud.nifti_affine is None and len(cloud.points) > config.dense_points:
+        iterations = config.dense_fit_iterations
     if plan.applies and options.iterations is None and options.method is None \
-            and config.fit_iterations is not None and config.fit_iterations < planned:
-        fit_config.method_config = with_iterations(fit_config.method_config, config.fit_iterations)
+            and iterations is not None and iterations < planned:
+        fit_config.method_config = with_iterations(fit_config.method_config, iterations)
     return plan
 
 

@@ -175,3 +175,26 @@ def test_one_thread_count_for_torch_and_the_grid_kernels():
     finally:
         torch.set_num_threads(before_torch)
         numba.set_num_threads(before_numba)
+
+
+def test_refined_fit_length_follows_the_point_count_and_the_input_kind():
+    import dataclasses
+
+    from ribpull_core.methods import build_fit_config
+    from ribpull_core.pipeline import _plan_refinement
+    from ribpull_core.pointcloud import PointCloud
+
+    v = np.random.default_rng(0).normal(size=(20_000, 3))
+    sphere = PointCloud(points=50.0 * v / np.linalg.norm(v, axis=1, keepdims=True))  # mm, dense: refined
+
+    def planned(cloud, dense_points):
+        config = build_fit_config("default")
+        config.refine = dataclasses.replace(config.refine, dense_points=dense_points)
+        plan = _plan_refinement(cloud, config, PipelineOptions())
+        assert plan.applies
+        return config.method_config.schedule.iterations
+
+    assert planned(sphere, dense_points=100_000) == 400  # fewer points than dense_points
+    assert planned(sphere, dense_points=10_000) == 600  # a dense point cloud keeps 600
+    label_map = dataclasses.replace(sphere, nifti_affine=np.eye(4))
+    assert planned(label_map, dense_points=10_000) == 400  # a label map's boundary points do not count
