@@ -116,8 +116,9 @@ def _encode_backward2(grad_out, idx, w, n_feat, grad_table):  # pragma: no cover
                 grad_table[row, 1] += wc * g1
 
 
-def _forward_kernel(n_feat: int):
-    return _encode_forward2 if n_feat == 2 else _encode_forward
+def _kernels(n_feat: int):
+    """(forward, backward) kernels for n_feat features per level."""
+    return (_encode_forward2, _encode_backward2) if n_feat == 2 else (_encode_forward, _encode_backward)
 
 
 class HashGridEncode(torch.autograd.Function):
@@ -131,7 +132,7 @@ class HashGridEncode(torch.autograd.Function):
         out = np.empty((n, n_levels * n_feat), np.float32)
         idx = np.empty((n, n_levels, 8), np.int32)  # table rows < 2^31
         w = np.empty((n, n_levels, 8), np.float32)
-        _forward_kernel(n_feat)(xn, tn, res, sizes, offsets, dense, np.float32(domain), out, idx, w, True)
+        _kernels(n_feat)[0](xn, tn, res, sizes, offsets, dense, np.float32(domain), out, idx, w, True)
         ctx.save_for_backward(torch.from_numpy(idx), torch.from_numpy(w))
         ctx.table_shape = tuple(table.shape)
         return torch.from_numpy(out)
@@ -141,8 +142,7 @@ class HashGridEncode(torch.autograd.Function):
         idx, w = ctx.saved_tensors
         grad_table = np.zeros(ctx.table_shape, np.float32)
         n_feat = ctx.table_shape[1]
-        kernel = _encode_backward2 if n_feat == 2 else _encode_backward
-        kernel(grad_out.contiguous().numpy().astype(np.float32, copy=False), idx.numpy(), w.numpy(), n_feat, grad_table)
+        _kernels(n_feat)[1](grad_out.contiguous().numpy().astype(np.float32, copy=False), idx.numpy(), w.numpy(), n_feat, grad_table)
         return None, torch.from_numpy(grad_table), None, None, None, None, None
 
 
@@ -153,7 +153,7 @@ def encode_inference(x: torch.Tensor, table: torch.Tensor, res, sizes, offsets, 
     tn = table.detach().contiguous().numpy()
     out = np.empty((xn.shape[0], res.shape[0] * tn.shape[1]), np.float32)
     unused_idx, unused_w = np.empty((1, 1, 1), np.int32), np.empty((1, 1, 1), np.float32)
-    _forward_kernel(tn.shape[1])(xn, tn, res, sizes, offsets, dense, np.float32(domain), out, unused_idx, unused_w, False)
+    _kernels(tn.shape[1])[0](xn, tn, res, sizes, offsets, dense, np.float32(domain), out, unused_idx, unused_w, False)
     return torch.from_numpy(out)
 
 
