@@ -197,10 +197,11 @@ def default_config() -> SparseOccConfig:
     half a gap is 3 mm, deeper than a rib's 2.5-3.5 mm half-thickness, so "inside" points landed
     beyond the far wall and the ribs merged (5k / 0 mm: CD-L1 1.455 -> 0.938 mm; 10k / 0.3 mm:
     0.833 -> 0.643 mm, Poisson 0.763; 60k unchanged; 300k samples per side). Inputs with labels
-    (a rib's points, a cartilage's) add free space in the gaps between different structures up to 4
+    (a rib's points, a cartilage's) add free space in the gaps between different structures up to 5
     mm wide (`gap_points`), which the flood fill closes: on the sternum phantom the ribs isolated
-    went 9 -> 17 of 20 from 60k / 0.3 mm points (Poisson 16) and 15 -> 20 of 20 from the 1.5 mm
-    label map (marching cubes + Taubin 20), CD-L1 unchanged (0.447 / 0.442 mm, 300k samples).
+    went 9 -> 20 of 20 from 60k / 0.3 mm points (Poisson 16; 19 in the sweep at 2480e20) and
+    15 -> 20 of 20 from the 1.5 mm label map (marching cubes + Taubin 20), CD-L1 unchanged
+    (0.447 / 0.442 mm, 300k samples).
     Measured in docs/benchmarks.md (benchmarks/pull_targets_ab.py, benchmarks/offset_cap_ab.py,
     benchmarks/gap_ab.py)."""
     return SparseOccConfig(
