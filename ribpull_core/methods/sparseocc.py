@@ -495,6 +495,18 @@ def margin_and_gradient(module: torch.nn.Module, q: torch.Tensor, method: str, f
     return u, (u_all[b:].view(b, 3) - u[:, None]) / fd_step
 
 
+def free_margin(distance: np.ndarray) -> torch.Tensor:
+    """(M,) float32 hinge margins of points known to be outside, from their (M,) distance to the
+    data (unit frame): half of it, at most 0.5 (free space far away need not be any more certain)."""
+    return torch.from_numpy(np.minimum(0.5 * np.asarray(distance, np.float32), 0.5))
+
+
+def outside_loss(logits: torch.Tensor, margin: torch.Tensor) -> torch.Tensor:
+    """`sign_margin_loss` of (B, 2) logits at points known to be outside, margins (B,)."""
+    u = margin_uncertainty(logits)
+    return sign_margin_loss(u, torch.zeros_like(u, dtype=torch.bool), margin)
+
+
 class SparseOcc(Method):
     """SparseOcc occupancy fitting (paper eq. 1-2) with RibPull's optional sign supervision.
 
@@ -516,13 +528,13 @@ class SparseOcc(Method):
         cfg: SparseOccConfig = self.config
         rng = np.random.default_rng(cfg.seed)
         pts = np.asarray(points_unit, dtype=np.float64)
-        point_labels = None if labels is None or len(labels) != len(pts) else np.asarray(labels)
+        kept = np.arange(len(pts))  # the input points used, so that their labels follow them
         if len(pts) > cfg.queries.max_input_points:  # the loss only needs a dense enough sample
-            pick = rng.choice(len(pts), cfg.queries.max_input_points, replace=False)
-            pts, point_labels = pts[pick], (None if point_labels is None else point_labels[pick])
+            kept = kept[rng.choice(len(pts), cfg.queries.max_input_points, replace=False)]
         if cfg.queries.outlier_gap_factor > 0:
-            keep = connected_point_mask(pts, cfg.queries.outlier_gap_factor)
-            pts, point_labels = pts[keep], (None if point_labels is None else point_labels[keep])
+            kept = kept[connected_point_mask(pts[kept], cfg.queries.outlier_gap_factor)]
+        pts = pts[kept]
+        point_labels = None if labels is None or len(labels) != len(points_unit) else np.asarray(labels)[kept]
         self.points = pts
         tree = cKDTree(pts)
         gap = sampling_gap(pts, tree=tree)
@@ -540,7 +552,7 @@ class SparseOcc(Method):
             if s.free_space_weight > 0 and len(labels.free):
                 self.free = torch.from_numpy(labels.free).to(device)
                 # hinge margins: half the distance to the data (capped) and half the normal offset
-                self.free_margin = torch.from_numpy(np.minimum(0.5 * labels.free_distance, 0.5)).to(device)
+                self.free_margin = free_margin(labels.free_distance).to(device)
             if s.near_surface_weight > 0:
                 self.near = torch.from_numpy(np.concatenate([labels.near_in, labels.near_out])).to(device)
                 self.near_margin = 0.5 * labels.offset
@@ -548,7 +560,7 @@ class SparseOcc(Method):
             gaps, gap_distance = gap_points(pts, point_labels, tree, s.gap_max_mm / self.unit_mm)
             if len(gaps):
                 self.gap = torch.from_numpy(gaps).to(device)
-                self.gap_margin = torch.from_numpy(np.minimum(0.5 * gap_distance, 0.5)).to(device)
+                self.gap_margin = free_margin(gap_distance).to(device)
         target_kind = cfg.queries.label_map_targets if known is not None else cfg.queries.targets
         normals = labels.normals if labels is not None else None
         self.target_all = torch.from_numpy(self._pull_targets(pts, queries, nearest, target_kind, gap, tree, normals)).to(device)
@@ -627,18 +639,14 @@ class SparseOcc(Method):
             terms["entropy"] = w_entropy * minimax_entropy_loss(logits["uniform"], logits["on_input"],
                                                                 ec.lambda_min, ec.lambda_max)
         if "free" in logits:
-            u_free = margin_uncertainty(logits["free"])
-            outside = torch.zeros_like(u_free, dtype=torch.bool)
-            terms["free_space"] = sc.free_space_weight * sign_margin_loss(u_free, outside, self.free_margin[fidx])
+            terms["free_space"] = sc.free_space_weight * outside_loss(logits["free"], self.free_margin[fidx])
         if "near" in logits:
             inside = nidx < len(self.near) // 2  # the first half of `near` are the inside points
             u_near = margin_uncertainty(logits["near"])
             terms["near_surface"] = sc.near_surface_weight * sign_margin_loss(
                 u_near, inside, torch.full_like(u_near, self.near_margin))
         if "gap" in logits:
-            u_gap = margin_uncertainty(logits["gap"])
-            terms["gap"] = sc.gap_weight * sign_margin_loss(u_gap, torch.zeros_like(u_gap, dtype=torch.bool),
-                                                            self.gap_margin[gidx])
+            terms["gap"] = sc.gap_weight * outside_loss(logits["gap"], self.gap_margin[gidx])
         if "known" in logits:
             terms["known_occupancy"] = sc.known_weight * sign_margin_loss(
                 margin_uncertainty(logits["known"]), self.known_inside[kidx], self.known_margin[kidx])
