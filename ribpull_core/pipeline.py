@@ -307,19 +307,19 @@ def _plan_refinement(cloud, fit_config, options: PipelineOptions):
     """The input's refine.RefinePlan, or None when the preset does not refine. A label map is refined
     onto its boundary points (placed between the voxel centres), like a point cloud. A plan that applies
     shortens the fit to the refinement's fit_iterations (never lengthens it) unless the options name
-    an iteration count or another method (fit_config is changed in place)."""
+    an iteration count or another method (fit_config is changed in place). A point cloud of more than
+    refine.dense_points points is planned with dense_max_neighbours and dense_fit_iterations."""
     from .methods import with_iterations
     from .refine import plan_refinement
 
     config = fit_config.refine
     if config is None:
         return None
-    plan = plan_refinement(cloud.points, config)
+    dense = cloud.nifti_affine is None and len(cloud.points) > config.dense_points
+    plan = plan_refinement(cloud.points, replace(config, max_neighbours=config.dense_max_neighbours) if dense else config)
     planned = fit_config.method_config.schedule.iterations
     # the shorter schedule was measured for the preset's own method: another method keeps its own
-    iterations = config.fit_iterations
-    if cloud.nifti_affine is None and len(cloud.points) > config.dense_points:
-        iterations = config.dense_fit_iterations
+    iterations = config.dense_fit_iterations if dense else config.fit_iterations
     if plan.applies and options.iterations is None and options.method is None \
             and iterations is not None and iterations < planned:
         fit_config.method_config = with_iterations(fit_config.method_config, iterations)

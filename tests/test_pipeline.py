@@ -185,16 +185,22 @@ def test_refined_fit_length_follows_the_point_count_and_the_input_kind():
     from ribpull_core.pointcloud import PointCloud
 
     v = np.random.default_rng(0).normal(size=(20_000, 3))
-    sphere = PointCloud(points=50.0 * v / np.linalg.norm(v, axis=1, keepdims=True))  # mm, dense: refined
+    # mm, dense: refined, and ~90 points within the 4 mm patch radius (so the neighbour cap decides k)
+    sphere = PointCloud(points=30.0 * v / np.linalg.norm(v, axis=1, keepdims=True))
 
     def planned(cloud, dense_points):
         config = build_fit_config("default")
         config.refine = dataclasses.replace(config.refine, dense_points=dense_points)
         plan = _plan_refinement(cloud, config, PipelineOptions())
         assert plan.applies
-        return config.method_config.schedule.iterations
+        return config.method_config.schedule.iterations, plan.neighbours
 
-    assert planned(sphere, dense_points=100_000) == 400  # fewer points than dense_points
-    assert planned(sphere, dense_points=10_000) == 600  # a dense point cloud keeps 600
+    refine = build_fit_config("default").refine
+    # fewer points than dense_points: the short fit, patches of at most max_neighbours
+    assert planned(sphere, dense_points=100_000) == (400, refine.max_neighbours)
+    # a dense point cloud keeps 600 iterations and averages over larger patches
+    assert planned(sphere, dense_points=10_000) == (600, refine.dense_max_neighbours)
+    assert refine.dense_max_neighbours > refine.max_neighbours
     label_map = dataclasses.replace(sphere, nifti_affine=np.eye(4))
-    assert planned(label_map, dense_points=10_000) == 400  # a label map's boundary points do not count
+    # a label map's boundary points do not count as dense
+    assert planned(label_map, dense_points=10_000) == (400, refine.max_neighbours)  # a label map's boundary points do not count
