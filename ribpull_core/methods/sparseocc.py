@@ -135,9 +135,12 @@ class SignConfig:
     midpoints of pairs of input points of different structures (labels) at most gap_max_mm
     millimetres apart (`gap_points`): a gap narrower than the flood fill's blocking shell (a rib
     tip 1.5-3 mm from its costal cartilage) gets free space that the flood fill never reaches; used
-    only when the input has labels and the method its unit_mm; 0 disables it. 5 mm: at 60k points
+    only when the input has labels and the method its unit_mm; 0 disables it. 6 mm: at 60k points
     no rib point of the sternum phantom's L6 lies within 4.3 mm of a cartilage point across its
-    2.9 mm tip gap, and at a 4 mm reach L6, R6 and R8 stayed merged (17 of 20 isolated; 5 mm: 20).
+    2.9 mm tip gap, and at a 4 mm reach L6, R6 and R8 stayed merged (17 of 20 isolated); at 5 mm
+    R6 (2.5 mm tip gap) stayed merged in the sweep at 2480e20 and in 2 of 2 runs after it (19 of
+    20), at 6 mm none in 3 of 3 runs (571 -> 600 gap points; none on the phantom without a sternum
+    at 60k or 5k points, nor on the real TotalSegmentator map).
     """
 
     free_space_weight: float = 0.0
@@ -150,7 +153,7 @@ class SignConfig:
     known_points: int = 4096
     gap_weight: float = 0.0
     gap_points: int = 1024
-    gap_max_mm: float = 5.0
+    gap_max_mm: float = 6.0
 
 
 @dataclass
@@ -197,9 +200,10 @@ def default_config() -> SparseOccConfig:
     half a gap is 3 mm, deeper than a rib's 2.5-3.5 mm half-thickness, so "inside" points landed
     beyond the far wall and the ribs merged (5k / 0 mm: CD-L1 1.455 -> 0.938 mm; 10k / 0.3 mm:
     0.833 -> 0.643 mm, Poisson 0.763; 60k unchanged; 300k samples per side). Inputs with labels
-    (a rib's points, a cartilage's) add free space in the gaps between different structures up to 5
+    (a rib's points, a cartilage's) add free space in the gaps between different structures up to 6
     mm wide (`gap_points`), which the flood fill closes: on the sternum phantom the ribs isolated
-    went 9 -> 20 of 20 from 60k / 0.3 mm points (Poisson 16; 19 in the sweep at 2480e20) and
+    went 9 -> 20 of 20 from 60k / 0.3 mm points (Poisson 16; 19 in the sweep at 2480e20 with a
+    5 mm reach) and
     15 -> 20 of 20 from the 1.5 mm label map (marching cubes + Taubin 20), CD-L1 unchanged
     (0.447 / 0.442 mm, 300k samples).
     Measured in docs/benchmarks.md (benchmarks/pull_targets_ab.py, benchmarks/offset_cap_ab.py,
