@@ -281,6 +281,13 @@ def test_gap_points_fill_the_gap_between_two_structures_and_never_a_structure():
     assert len(one_label) == 0
     unlabelled, _ = gap_points(pts, None, cKDTree(pts), max_gap=0.03)
     assert len(unlabelled) == 0
+    # a stray point labelled 2 (an outlier) hovering 0.02 above slab 1 alone: no gap around it
+    stray = np.concatenate([lower, [[0.0, 0.0, -0.01 + 0.02]]])
+    stray_labels = np.concatenate([np.ones(len(lower), int), [2]])
+    lone, _ = gap_points(stray, stray_labels, cKDTree(stray), max_gap=0.03)
+    assert len(lone) == 0
+    lone_unchecked, _ = gap_points(stray, stray_labels, cKDTree(stray), max_gap=0.03, min_support=0)
+    assert len(lone_unchecked) > 0  # the support rule is what drops it
 
 
 def test_two_labelled_spheres_a_gap_apart_get_the_gap_term_and_come_apart():

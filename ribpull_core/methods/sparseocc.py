@@ -364,7 +364,7 @@ def nearest_other_structure(points: np.ndarray, labels: np.ndarray, max_gap: flo
 
 
 def gap_points(points: np.ndarray, labels: np.ndarray, tree: cKDTree, max_gap: float, balance: float = 0.1,
-               k: int = 16) -> tuple[np.ndarray, np.ndarray]:
+               k: int = 16, min_support: int = 3) -> tuple[np.ndarray, np.ndarray]:
     """Free space between neighbouring structures: ((M, 3) float32 points, (M,) float32 distance to
     the nearest input point), the units of (N, 3) `points`.
 
@@ -373,7 +373,11 @@ def gap_points(points: np.ndarray, labels: np.ndarray, tree: cKDTree, max_gap: f
     the gap between the two when it is about as far from the one structure as from the other: among
     m's k nearest input points, the nearest of each pair member's label are both there and their
     distances differ by at most `balance` x the pair's length; and no input point is nearer to m
-    than a quarter of that length. A midpoint inside one structure (a pair across a rib tip's
+    than a quarter of that length; and each of the two labels holds at least `min_support` of those
+    k points (a gap lies between two surfaces: a stray sample labelled like a neighbour, e.g. a
+    uniform outlier next to a rib, makes pairs with one point on its side; on the bench's 60k /
+    0.3 mm phantom with 2 % outliers 33 of 33 midpoints were such, and the hinge punched a 4.8 mm
+    bump; the sternum phantom keeps 593 of 600, its label map 612 of 612). A midpoint inside one structure (a pair across a rib tip's
     corner) is much nearer to that structure and is dropped. Nearest pairs rather than every pair
     within reach: they cross a gap straight, so the reach can cover sparse tips without the
     corner-cutting pairs (5 mm on the sternum phantom's 60k points: 6 of 662 midpoints inside a
@@ -394,8 +398,10 @@ def gap_points(points: np.ndarray, labels: np.ndarray, tree: cKDTree, max_gap: f
     near_labels = labels[nn]
     d_p = np.where(near_labels == labels[pairs[:, 0]][:, None], dist, np.inf).min(axis=1)
     d_q = np.where(near_labels == labels[pairs[:, 1]][:, None], dist, np.inf).min(axis=1)
+    support_p = (near_labels == labels[pairs[:, 0]][:, None]).sum(axis=1)
+    support_q = (near_labels == labels[pairs[:, 1]][:, None]).sum(axis=1)
     keep = np.isfinite(d_p) & np.isfinite(d_q) & (np.abs(d_p - d_q) <= balance * length) \
-        & (dist[:, 0] >= 0.25 * length)
+        & (dist[:, 0] >= 0.25 * length) & (support_p >= min_support) & (support_q >= min_support)
     return mid[keep].astype(np.float32), dist[keep, 0].astype(np.float32)
 
 
