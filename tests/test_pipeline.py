@@ -203,4 +203,4 @@ def test_refined_fit_length_follows_the_point_count_and_the_input_kind():
     assert refine.dense_max_neighbours > refine.max_neighbours
     label_map = dataclasses.replace(sphere, nifti_affine=np.eye(4))
     # a label map's boundary points do not count as dense
-    assert planned(label_map, dense_points=10_000) == (400, refine.max_neighbours)  # a label map's boundary points do not count
+    assert planned(label_map, dense_points=10_000) == (400, refine.max_neighbours)

@@ -203,9 +203,8 @@ def default_config() -> SparseOccConfig:
     (a rib's points, a cartilage's) add free space in the gaps between different structures up to 6
     mm wide (`gap_points`), which the flood fill closes: on the sternum phantom the ribs isolated
     went 9 -> 20 of 20 from 60k / 0.3 mm points (Poisson 16; 19 in the sweep at 2480e20 with a
-    5 mm reach) and
-    15 -> 20 of 20 from the 1.5 mm label map (marching cubes + Taubin 20), CD-L1 unchanged
-    (0.447 / 0.442 mm, 300k samples).
+    5 mm reach) and 15 -> 20 of 20 from the 1.5 mm label map (marching cubes + Taubin 20), CD-L1
+    unchanged (0.447 / 0.442 mm, 300k samples).
     Measured in docs/benchmarks.md (benchmarks/pull_targets_ab.py, benchmarks/offset_cap_ab.py,
     benchmarks/gap_ab.py)."""
     return SparseOccConfig(
@@ -377,8 +376,9 @@ def gap_points(points: np.ndarray, labels: np.ndarray, tree: cKDTree, max_gap: f
     k points (a gap lies between two surfaces: a stray sample labelled like a neighbour, e.g. a
     uniform outlier next to a rib, makes pairs with one point on its side; on the bench's 60k /
     0.3 mm phantom with 2 % outliers 33 of 33 midpoints were such, and the hinge punched a 4.8 mm
-    bump; the sternum phantom keeps 593 of 600, its label map 612 of 612). A midpoint inside one structure (a pair across a rib tip's
-    corner) is much nearer to that structure and is dropped. Nearest pairs rather than every pair
+    bump; the sternum phantom keeps 593 of 600, its label map 612 of 612). A midpoint inside one
+    structure (a pair across a rib tip's corner) is much nearer to that structure and is dropped.
+    Nearest pairs rather than every pair
     within reach: they cross a gap straight, so the reach can cover sparse tips without the
     corner-cutting pairs (5 mm on the sternum phantom's 60k points: 6 of 662 midpoints inside a
     solid; every pair within 5 mm: 109 of 3,006). (Flood-fill-oriented normals do not help here:
@@ -396,12 +396,12 @@ def gap_points(points: np.ndarray, labels: np.ndarray, tree: cKDTree, max_gap: f
     length = np.linalg.norm(points[pairs[:, 1]] - points[pairs[:, 0]], axis=1)
     dist, nn = tree.query(mid, k=min(k, len(points)), workers=-1)
     near_labels = labels[nn]
-    d_p = np.where(near_labels == labels[pairs[:, 0]][:, None], dist, np.inf).min(axis=1)
-    d_q = np.where(near_labels == labels[pairs[:, 1]][:, None], dist, np.inf).min(axis=1)
-    support_p = (near_labels == labels[pairs[:, 0]][:, None]).sum(axis=1)
-    support_q = (near_labels == labels[pairs[:, 1]][:, None]).sum(axis=1)
+    of_p = near_labels == labels[pairs[:, 0]][:, None]  # (M, k): which of m's neighbours are p's structure
+    of_q = near_labels == labels[pairs[:, 1]][:, None]
+    d_p = np.where(of_p, dist, np.inf).min(axis=1)
+    d_q = np.where(of_q, dist, np.inf).min(axis=1)
     keep = np.isfinite(d_p) & np.isfinite(d_q) & (np.abs(d_p - d_q) <= balance * length) \
-        & (dist[:, 0] >= 0.25 * length) & (support_p >= min_support) & (support_q >= min_support)
+        & (dist[:, 0] >= 0.25 * length) & (of_p.sum(axis=1) >= min_support) & (of_q.sum(axis=1) >= min_support)
     return mid[keep].astype(np.float32), dist[keep, 0].astype(np.float32)
 
 
