@@ -14,24 +14,36 @@ def config_change(part: str, **values):
     return lambda c: dataclasses.replace(c, **{part: dataclasses.replace(getattr(c, part), **values)})
 
 
+@dataclasses.dataclass(frozen=True)
+class RefineChange:
+    """A change for `fit_default` to the `default` run preset's RefineConfig (its fields replaced
+    by `values`), e.g. RefineChange({"dense_fit_iterations": 800})."""
+
+    values: dict
+
+
 @contextlib.contextmanager
 def default_preset_changed(change):
-    """Within the block, SparseOcc's `default` preset is change(default_config()) (change: a
-    SparseOccConfig -> SparseOccConfig function; None leaves it as it is)."""
+    """Within the block, the `default` preset is changed: a RefineChange replaces fields of its
+    RefineConfig; any other change is a SparseOccConfig -> SparseOccConfig function applied to
+    SparseOcc's `default` config; None leaves it as it is."""
+    import ribpull_core.methods as methods
     import ribpull_core.methods.sparseocc as so
 
-    original = so.SparseOcc.presets["default"]
-    if change is not None:
+    original, run = so.SparseOcc.presets["default"], methods.RUN_PRESETS["default"]
+    if isinstance(change, RefineChange):
+        methods.RUN_PRESETS["default"] = dataclasses.replace(run, refine=dataclasses.replace(run.refine, **change.values))
+    elif change is not None:
         so.SparseOcc.presets["default"] = lambda: change(original())
     try:
         yield
     finally:
-        so.SparseOcc.presets["default"] = original
+        so.SparseOcc.presets["default"], methods.RUN_PRESETS["default"] = original, run
 
 
 def fit_default(points_path: Path, outdir: Path, change=None, labels=None):
     """run_pipeline (default preset, no skeleton or preview) on `points_path` with `change` applied
-    to its SparseOcc config (labels: a label map's values to keep, None: its ribs); returns (mesh in
+    (`default_preset_changed`) (labels: a label map's values to keep, None: its ribs); returns (mesh in
     mm, seconds of the whole call)."""
     import trimesh
 
@@ -94,7 +106,7 @@ def score_case(case, mesh, samples: int) -> dict:
 
 def score_cell(score: dict) -> str:
     """A score_case result as a table cell: "CD-L1 / HD / parts" (mm, mm, mesh components)."""
-    return f"{score['cd_l1_mm']:.3f} / {score['hausdorff_mm']:.2f} / {score['mesh_components']}"
+    return f"{score['cd_l1_mm']:.4f} / {score['hausdorff_mm']:.2f} / {score['mesh_components']}"
 
 
 TABLE_HEADER = ("| case | run | CD-L1 / HD / parts | isolated / separable | s | CD-L1 / baseline |\n"
@@ -108,13 +120,13 @@ def print_runs(spec: str, case, runs, samples: int) -> None:
     base = scores[0]["cd_l1_mm"]
     for (name, _, seconds), s in zip(runs, scores):
         sep = f"{s['n_isolated']} / {s['n_separable']}" if "n_isolated" in s else ""
-        print(f"| {spec} | {name} | {score_cell(s)} | {sep} | {seconds:.0f} | {s['cd_l1_mm'] / base:.2f} |", flush=True)
+        print(f"| {spec} | {name} | {score_cell(s)} | {sep} | {seconds:.0f} | {s['cd_l1_mm'] / base:.3f} |", flush=True)
 
 
 def compare_variants(args, variants, extra=None) -> None:
     """The A/B scripts' loop: for each case of args.cases (`bench_case` specs) print the bench
-    baseline and one `default` run per (name, change) of `variants` (change: a `config_change`, or
-    None for the preset as it is), scored on args.samples per side. extra(runs) may append derived
+    baseline and one `default` run per (name, change) of `variants` (change: a `config_change`, a
+    RefineChange, or None for the preset as it is), scored on args.samples per side. extra(runs) may append derived
     (name, mesh mm, seconds) runs (e.g. a post-processed copy) before the rows are printed."""
     import tempfile
 

@@ -57,7 +57,15 @@ class RefineConfig:
     grid level is finer, so slower to settle) are fitted for at most this many instead: at 200k
     points 400 iterations left HD 2.16 / 2.74 / 5.83 mm at 0 / 0.3 / 1 mm noise and 4 ribs merged
     at 1 mm, against 0.88 / 0.89 / 4.01 mm and none at 600 (sweeps at 3107389 and dff2da3, 1M
-    samples). Label maps keep fit_iterations (their boundary points number ~100k).
+    samples); 800 against 600 at 0.3 mm noise: HD 0.90 against 2.54 mm and 24 parts against 25,
+    CD-L1 0.2272 against 0.2275 (0 / 1 mm noise: CD-L1 0.2056 / 0.3945 against 0.2055 / 0.3941;
+    1M samples, benchmarks/refine_ab.py, 2026-12-03). Label maps keep fit_iterations (their
+    boundary points number ~100k).
+    dense_mesh_resolution: such dense point clouds, when refined, are meshed at (at least) this
+    many cells instead of the preset's: the refined vertices lie on the patches, and between them
+    the flat triangles cut a rib's curvature (a 1.2 mm edge on a 4 mm radius: ~0.05 mm): at 200k /
+    0.3 mm, 384 against 256 cells gave CD-L1 0.2244 against 0.2272 mm, Poisson 0.2270 (1M samples,
+    800 iterations, 2026-12-03). 0 keeps the preset's.
     dense_max_neighbours: such dense point clouds' patches hold up to this many points instead of
     max_neighbours (their radius_mm holds more): at 200k points / 0.3 mm noise, 48 against 32
     averaged the noise to CD-L1 0.227 against 0.229 mm, Poisson 0.227 (1M samples, +4.4 s of
@@ -81,8 +89,9 @@ class RefineConfig:
     fair_order: int = 2
     fit_iterations: int | None = 400
     dense_points: int = 100_000
-    dense_fit_iterations: int | None = 600
+    dense_fit_iterations: int | None = 800
     dense_max_neighbours: int = 48
+    dense_mesh_resolution: int = 384
 
 
 @dataclass

@@ -308,7 +308,8 @@ def _plan_refinement(cloud, fit_config, options: PipelineOptions):
     onto its boundary points (placed between the voxel centres), like a point cloud. A plan that applies
     shortens the fit to the refinement's fit_iterations (never lengthens it) unless the options name
     an iteration count or another method (fit_config is changed in place). A point cloud of more than
-    refine.dense_points points is planned with dense_max_neighbours and dense_fit_iterations."""
+    refine.dense_points points is planned with dense_max_neighbours and dense_fit_iterations, and is
+    meshed at dense_mesh_resolution cells unless the options name a resolution."""
     from .methods import with_iterations
     from .refine import plan_refinement
 
@@ -323,6 +324,9 @@ def _plan_refinement(cloud, fit_config, options: PipelineOptions):
     if plan.applies and options.iterations is None and options.method is None \
             and iterations is not None and iterations < planned:
         fit_config.method_config = with_iterations(fit_config.method_config, iterations)
+    # the finer mesh pays off only where its vertices are moved onto the patches
+    if plan.applies and dense and options.resolution is None and config.dense_mesh_resolution:
+        fit_config.mesh = replace(fit_config.mesh, resolution=max(fit_config.mesh.resolution, config.dense_mesh_resolution))
     return plan
 
 

@@ -188,19 +188,22 @@ def test_refined_fit_length_follows_the_point_count_and_the_input_kind():
     # mm, dense: refined, and ~90 points within the 4 mm patch radius (so the neighbour cap decides k)
     sphere = PointCloud(points=30.0 * v / np.linalg.norm(v, axis=1, keepdims=True))
 
-    def planned(cloud, dense_points):
+    def planned(cloud, dense_points, **options):
         config = build_fit_config("default")
         config.refine = dataclasses.replace(config.refine, dense_points=dense_points)
-        plan = _plan_refinement(cloud, config, PipelineOptions())
+        plan = _plan_refinement(cloud, config, PipelineOptions(**options))
         assert plan.applies
-        return config.method_config.schedule.iterations, plan.neighbours
+        return config.method_config.schedule.iterations, plan.neighbours, config.mesh.resolution
 
-    refine = build_fit_config("default").refine
-    # fewer points than dense_points: the short fit, patches of at most max_neighbours
-    assert planned(sphere, dense_points=100_000) == (400, refine.max_neighbours)
-    # a dense point cloud keeps 600 iterations and averages over larger patches
-    assert planned(sphere, dense_points=10_000) == (600, refine.dense_max_neighbours)
-    assert refine.dense_max_neighbours > refine.max_neighbours
+    defaults = build_fit_config("default")
+    refine, preset_resolution = defaults.refine, defaults.mesh.resolution
+    # fewer points than dense_points: the short fit, patches of at most max_neighbours, the preset's mesh
+    assert planned(sphere, dense_points=100_000) == (400, refine.max_neighbours, preset_resolution)
+    # a dense point cloud is fitted longer, averages over larger patches and is meshed finer
+    assert planned(sphere, dense_points=10_000) == (800, refine.dense_max_neighbours, refine.dense_mesh_resolution)
+    assert refine.dense_max_neighbours > refine.max_neighbours and refine.dense_mesh_resolution > preset_resolution
+    # ... unless the user names a resolution (build_fit_config applied it already)
+    assert planned(sphere, dense_points=10_000, resolution=preset_resolution)[2] == preset_resolution
     label_map = dataclasses.replace(sphere, nifti_affine=np.eye(4))
     # a label map's boundary points do not count as dense
-    assert planned(label_map, dense_points=10_000) == (400, refine.max_neighbours)
+    assert planned(label_map, dense_points=10_000) == (400, refine.max_neighbours, preset_resolution)
