@@ -9,7 +9,8 @@ mesh components). None of them is the default.
 Rows: Poisson; the `default` preset (no skeleton, no preview) through run_pipeline; the default's
 mesh after 3 Taubin passes (trimesh, lambda = nu = 0.5); the default with one SparseOcc setting
 changed (the near-surface hinges twice as far off the points; the finest grid cell two sampling
-gaps instead of one; eq. 1's quadric targets over 40 neighbours instead of 20).
+gaps instead of one; eq. 1's quadric targets over 40 neighbours instead of 20; the near-surface
+hinges' offset capped at 2 mm instead of 1; no near-surface hinges).
 """
 
 from __future__ import annotations
@@ -23,6 +24,8 @@ VARIANTS = {
     "near-surface offset x2": abkit.config_change("sign", near_surface_offset=1.0),
     "finest cell 2 gaps": abkit.config_change("field", grid_finest_cell=2.0),
     "quadric targets k40": abkit.config_change("queries", target_knn=40),
+    "near-surface cap 2 mm": abkit.config_change("sign", near_surface_offset_max_mm=2.0),
+    "no near-surface hinges": abkit.config_change("sign", near_surface_weight=0.0),
 }
 
 
