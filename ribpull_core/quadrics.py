@@ -25,7 +25,8 @@ class LocalQuadrics:
     neighbour (the patch's extent); residual (N,): weighted RMS distance of the neighbours from the
     fitted height field (sample noise on a smooth sheet; a large fraction of `radius` where the
     neighbourhood is no height field: around a thin tube, across two sheets); one_sided (N,) bool:
-    every neighbour's oriented normal faces the point's way (all True when no normals were given).
+    every neighbour's oriented normal faces the point's way (all True when no normals were given);
+    facing (N,): the fraction of the neighbours whose normal does (1 without normals).
     """
 
     centre: np.ndarray
@@ -34,6 +35,7 @@ class LocalQuadrics:
     radius: np.ndarray
     residual: np.ndarray
     one_sided: np.ndarray
+    facing: np.ndarray
 
 
 def _monomials(u: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -50,7 +52,7 @@ def fit_local_quadrics(points: np.ndarray, k: int = 20, chunk: int = 25_000,
 
     normals: optional (N, 3) consistently oriented normals; a patch is `one_sided` when all its
     neighbours' normals have a positive dot product with its point's (no sample from the far side
-    of a thin structure is in it).
+    of a thin structure is in it); `facing` keeps the fraction that do.
 
     Weights exp(-(u^2 + v^2) / r^2), r the distance to the k-th neighbour, favour the near samples;
     a tiny ridge keeps degenerate neighbourhoods (collinear samples) solvable. `chunk` points are
@@ -82,11 +84,12 @@ def fit_local_quadrics(points: np.ndarray, k: int = 20, chunk: int = 25_000,
         err = w - np.einsum("nki,ni->nk", a, coef[sl])
         residual[sl] = np.sqrt((wt * err * err).sum(1) / wt.sum(1))
         centre[sl], frame[sl] = c, rot
-    one_sided = np.ones(n, bool)
+    one_sided, facing = np.ones(n, bool), np.ones(n)
     if normals is not None:
         nrm = np.asarray(normals, dtype=np.float64)
-        one_sided = np.einsum("nkj,nj->nk", nrm[nn], nrm[at]).min(axis=1) > 0.0
-    return LocalQuadrics(centre, frame, coef, dist[:, -1].copy(), residual, one_sided)
+        facing = (np.einsum("nkj,nj->nk", nrm[nn], nrm[at]) > 0.0).mean(axis=1)
+        one_sided = facing >= 1.0
+    return LocalQuadrics(centre, frame, coef, dist[:, -1].copy(), residual, one_sided, facing)
 
 
 def project_onto_quadrics(queries: np.ndarray, nearest: np.ndarray, quadrics: LocalQuadrics,
