@@ -77,3 +77,16 @@ def test_patches_across_both_sides_of_a_thin_plate_are_not_used():
     # one face alone: every patch is one-sided and used
     face = fit_local_quadrics(pts[~top], k=20, normals=normals[~top])
     assert face.one_sided.all()
+
+
+def test_facing_counts_the_neighbours_whose_normals_agree():
+    rng = np.random.default_rng(5)
+    pts = np.column_stack([rng.uniform(0, 1, (2000, 2)), np.zeros(2000)])
+    normals = np.tile([0.0, 0.0, 1.0], (2000, 1))
+    normals[7] *= -1  # one flipped normal: every patch holding point 7 has one neighbour facing away
+    patches = fit_local_quadrics(pts, k=20, normals=normals)
+    _, nn = cKDTree(pts).query(pts, k=20)
+    holds = (nn == 7).any(axis=1) & (np.arange(2000) != 7)
+    np.testing.assert_allclose(patches.facing[holds], 19 / 20)
+    assert not patches.one_sided[holds].any() and patches.one_sided[~holds & (np.arange(2000) != 7)].all()
+    assert patches.facing[7] == 1 / 20  # its own normal faces only itself
