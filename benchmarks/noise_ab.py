@@ -10,7 +10,9 @@ Rows: Poisson; the `default` preset (no skeleton, no preview) through run_pipeli
 mesh after 3 Taubin passes (trimesh, lambda = nu = 0.5); the default with one SparseOcc setting
 changed (the near-surface hinges twice as far off the points; the finest grid cell two sampling
 gaps instead of one; eq. 1's quadric targets over 40 neighbours instead of 20; the near-surface
-hinges' offset capped at 2 mm instead of 1; no near-surface hinges).
+hinges' offset capped at 2 mm instead of 1; no near-surface hinges; the default before 21a7999, whose
+eq. 1 target patches needed every neighbour's normal facing the point's way and whose near-surface
+hinges sat on the points themselves even on noisy input).
 """
 
 from __future__ import annotations
@@ -26,6 +28,8 @@ VARIANTS = {
     "quadric targets k40": abkit.config_change("queries", target_knn=40),
     "near-surface cap 2 mm": abkit.config_change("sign", near_surface_offset_max_mm=2.0),
     "no near-surface hinges": abkit.config_change("sign", near_surface_weight=0.0),
+    "before 21a7999 (strict patches, hinges on the points)": lambda c: abkit.config_change(
+        "sign", near_surface_centres="points")(abkit.config_change("queries", noisy_residual_mm=0.0)(c)),
 }
 
 

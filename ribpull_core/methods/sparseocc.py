@@ -213,6 +213,10 @@ def default_config() -> SparseOccConfig:
     (20 neighbours) instead of the point, wherever all the patch's samples face one way: a smooth
     target between the samples (60k / 0.3 mm: CD-L1 0.309 -> 0.284 mm); at 5k points no patch
     is one-sided (a 20-point patch wraps around a rib), so sparse inputs keep the paper's targets.
+    Noisy dense inputs (`QueryConfig.noisy_residual_mm`) count a narrow patch as one-sided with 80 %
+    of its neighbours facing its point's way, and centre the near-surface hinges on each point's
+    own patch: 60k / 1 mm CD-L1 0.4996 -> 0.4614 mm (Poisson 0.4487), 200k / 1 mm 0.3928 -> 0.3910
+    (Poisson 0.3953), 1M samples; at 20k / 1 mm (patches ~6.5 mm wide) it was worse and is not applied.
     The near-surface hinges sit half a sampling gap off the points but at most 1 mm: at 10k points
     half a gap is 3 mm, deeper than a rib's 2.5-3.5 mm half-thickness, so "inside" points landed
     beyond the far wall and the ribs merged (5k / 0 mm: CD-L1 1.455 -> 0.938 mm; 10k / 0.3 mm:
