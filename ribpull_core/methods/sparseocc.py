@@ -35,7 +35,7 @@ from ..losses import (
     sign_margin_loss,
 )
 from ..pointcloud import sampling_gap
-from ..quadrics import fit_local_quadrics, project_onto_quadrics
+from ..quadrics import LocalQuadrics, fit_local_quadrics, project_onto_quadrics
 from .base import FittedField, KnownOccupancy, Method, knn_sigma, sample_pull_queries
 from .training import ScheduleConfig
 
@@ -568,7 +568,6 @@ class SparseOcc(Method):
         pts = pts[kept]
         point_labels = None if labels is None or len(labels) != len(points_unit) else np.asarray(labels)[kept]
         self.points = pts
-        self._patches, self.noisy_input = None, False
         tree = cKDTree(pts)
         gap = sampling_gap(pts, tree=tree)
         queries, nearest = self._queries(pts, rng, tree)
@@ -589,24 +588,32 @@ class SparseOcc(Method):
                 self.free = torch.from_numpy(labels.free).to(device)
                 # hinge margins: half the distance to the data (capped) and half the normal offset
                 self.free_margin = free_margin(labels.free_distance).to(device)
-            if s.near_surface_weight > 0:
-                patches = self._target_patches(pts, labels.normals, tree) \
-                    if s.near_surface_centres != "points" and known is None else None
-                if patches is not None and (s.near_surface_centres == "quadric" or self.noisy_input):
-                    centres = project_onto_quadrics(pts, np.arange(len(pts)), patches, fallback=pts,
-                                                    max_shift=cfg.queries.target_max_shift * gap)
-                    labels.near_in = (centres - labels.offset * labels.normals).astype(np.float32)
-                    labels.near_out = (centres + labels.offset * labels.normals).astype(np.float32)
-                self.near = torch.from_numpy(np.concatenate([labels.near_in, labels.near_out])).to(device)
-                self.near_margin = 0.5 * labels.offset
         if s.gap_weight > 0 and self.unit_mm and point_labels is not None:
             gaps, gap_distance = gap_points(pts, point_labels, tree, s.gap_max_mm / self.unit_mm)
             if len(gaps):
                 self.gap = torch.from_numpy(gaps).to(device)
                 self.gap_margin = free_margin(gap_distance).to(device)
         target_kind = cfg.queries.label_map_targets if known is not None else cfg.queries.targets
-        normals = labels.normals if labels is not None else None
-        self.target_all = torch.from_numpy(self._pull_targets(pts, queries, nearest, target_kind, gap, tree, normals)).to(device)
+        if target_kind not in ("nearest", "quadric"):
+            raise ValueError(f"unknown pull targets {target_kind!r}: 'nearest' or 'quadric'")
+        near_wanted = labels is not None and s.near_surface_weight > 0
+        centred = near_wanted and known is None and s.near_surface_centres != "points"
+        # one set of patches serves eq. 1's targets and the hinges' centres (a label map's hinges keep its points)
+        self.target_patches, self.noisy_input = (self._target_patches(pts, labels.normals if labels else None, tree)
+                                                 if target_kind == "quadric" or centred else (None, False))
+        max_shift = cfg.queries.target_max_shift * gap
+        if near_wanted:
+            near_in, near_out = labels.near_in, labels.near_out
+            if centred and (s.near_surface_centres == "quadric" or self.noisy_input):
+                centres = project_onto_quadrics(pts, np.arange(len(pts)), self.target_patches, fallback=pts,
+                                                max_shift=max_shift)
+                near_in = (centres - labels.offset * labels.normals).astype(np.float32)
+                near_out = (centres + labels.offset * labels.normals).astype(np.float32)
+            self.near = torch.from_numpy(np.concatenate([near_in, near_out])).to(device)
+            self.near_margin = 0.5 * labels.offset
+        targets = pts[nearest] if target_kind == "nearest" else project_onto_quadrics(
+            queries, nearest, self.target_patches, fallback=pts[nearest], max_shift=max_shift)
+        self.target_all = torch.from_numpy(targets.astype(np.float32)).to(device)
         self.known = None
         if known is not None and s.known_weight > 0 and len(known.points):
             self.known = torch.from_numpy(np.asarray(known.points, np.float32)).to(device)
@@ -703,41 +710,26 @@ class SparseOcc(Method):
             return classification_level(u, self.known_inside.cpu().numpy())
         return float(np.median(fitted.evaluate(self.points.astype(np.float32))["U"]))
 
-    def _pull_targets(self, pts: np.ndarray, queries: np.ndarray, nearest: np.ndarray, kind: str, gap: float,
-                      tree: cKDTree, normals: np.ndarray | None = None) -> np.ndarray:
-        """(Q, 3) float32 eq. 1 targets: the nearest input points ("nearest"), or their local
-        quadric patches under the queries ("quadric"). With oriented `normals` (N, 3), a patch whose
-        neighbours do not all face its point's way (it spans both sides of a thin rib: sparse input)
-        is not used: its queries keep their nearest point. gap: the points' sampling gap; tree: a
-        kd-tree of `pts`."""
-        qc = self.config.queries
-        if kind == "nearest":
-            return pts[nearest].astype(np.float32)
-        if kind != "quadric":
-            raise ValueError(f"unknown pull targets {kind!r}: 'nearest' or 'quadric'")
-        patches = self._target_patches(pts, normals, tree)
-        return project_onto_quadrics(queries, nearest, patches, fallback=pts[nearest],
-                                     max_shift=qc.target_max_shift * gap).astype(np.float32)
-
-    def _target_patches(self, pts: np.ndarray, normals: np.ndarray | None, tree: cKDTree):
-        """The local quadric patches of eq. 1's targets and of the near-surface hinges' centres
-        (`LocalQuadrics`), cached: fitted once per setup. On a noisy input (QueryConfig.noisy_*)
-        the patches narrow enough not to reach a rib's far wall count as one-sided with a few
-        neighbours' normals flipped by the noise."""
-        if self._patches is not None:
-            return self._patches
+    def _target_patches(self, pts: np.ndarray, normals: np.ndarray | None, tree: cKDTree
+                        ) -> tuple[LocalQuadrics, bool]:
+        """(patches, noisy): the local quadric patches of eq. 1's "quadric" targets and of the
+        near-surface hinges' centres, over target_knn neighbours (tree: a kd-tree of `pts`), and
+        whether the input is judged noisy (QueryConfig.noisy_*). With oriented `normals` (N, 3), a
+        patch whose neighbours do not all face its point's way (it spans both sides of a thin rib:
+        sparse input) is not used (its queries keep their nearest point); on a noisy input a patch
+        narrow enough not to reach a rib's far wall is used with a few neighbours' normals flipped
+        by the noise."""
         qc = self.config.queries
         patches = fit_local_quadrics(pts, qc.target_knn, normals=normals, tree=tree)
-        narrow = patches.radius * (self.unit_mm or 0.0) <= qc.noisy_radius_mm
+        if not (qc.noisy_residual_mm > 0 and self.unit_mm and normals is not None):
+            return patches, False
+        narrow = patches.radius * self.unit_mm <= qc.noisy_radius_mm
         # sparse input (most patches wider than noisy_radius_mm) has large residuals from patches
         # wrapping round a rib, not from noise: it is never judged noisy
-        self.noisy_input = bool(qc.noisy_residual_mm > 0 and self.unit_mm and normals is not None
-                                and narrow.mean() >= 0.5
-                                and float(np.median(patches.residual)) * self.unit_mm > qc.noisy_residual_mm)
-        if self.noisy_input:
-            patches.one_sided = patches.one_sided | (narrow & (patches.facing >= qc.noisy_min_facing))
-        self._patches = patches
-        return patches
+        noisy = bool(narrow.mean() >= 0.5 and float(np.median(patches.residual)) * self.unit_mm > qc.noisy_residual_mm)
+        if noisy:
+            patches.one_sided |= narrow & (patches.facing >= qc.noisy_min_facing)
+        return patches, noisy
 
     def _queries(self, pts: np.ndarray, rng: np.random.Generator, tree: cKDTree) -> tuple[np.ndarray, np.ndarray]:
         """Neural-Pull queries, split evenly over `queries.scales` (tree: a kd-tree of `pts`)."""
