@@ -53,6 +53,7 @@ class RefinePlan:
     patch_radius_mm: float
     patch_residual_mm: float
     reason: str | None = None
+    too_noisy: bool = False  # not refined because of its noise (not its sparsity)
 
     @property
     def applies(self) -> bool:
@@ -85,7 +86,7 @@ def plan_refinement(points_mm: np.ndarray, config: RefineConfig, tree: cKDTree |
                   f"leaves {residual / np.sqrt(k):.2f} mm in a patch of {k}, over {config.max_patch_noise_mm} mm")
     else:
         reason = None
-    return RefinePlan(k, radius, residual, reason)
+    return RefinePlan(k, radius, residual, reason, too_noisy=reason is not None and radius <= config.max_radius_mm)
 
 
 def refine_vertices(vertices_mm: np.ndarray, points_mm: np.ndarray, config: RefineConfig,
