@@ -17,18 +17,17 @@ import numpy as np
 import robust_laplacian
 import scipy.sparse.linalg as sla
 
-#: parameters of a quadric height-field patch (refine / quadrics: a + b u + c v + d u^2 + e uv + f v^2)
-QUADRIC_PARAMETERS = 6
+from .quadrics import HEIGHT_FIELD_TERMS
 
 
 def normal_noise_mm(patch_residual_mm: float, neighbours: int) -> float:
     """The sample noise's std along the normal (mm), from the RMS residual of k-point quadric
-    patches (refine.RefinePlan): a least-squares fit of 6 parameters keeps (k - 6) / k of the
+    patches (refine.RefinePlan): a least-squares fit of HEIGHT_FIELD_TERMS (6) parameters keeps (k - 6) / k of the
     noise's variance in its residuals. On the bench's 60k points / 1 mm noise phantom: residual
     0.806 mm over 17 points -> 1.00 mm. At a coarser sampling the patches' misfit of the curvature
     adds to it (20k / 1 mm: 0.94 mm over 13 -> 1.28 mm)."""
-    k = max(int(neighbours), QUADRIC_PARAMETERS + 1)
-    return float(patch_residual_mm) * float(np.sqrt(k / (k - QUADRIC_PARAMETERS)))
+    k = max(int(neighbours), HEIGHT_FIELD_TERMS + 1)
+    return float(patch_residual_mm) * float(np.sqrt(k / (k - HEIGHT_FIELD_TERMS)))
 
 
 def mean_curvature_flow(vertices_mm: np.ndarray, faces: np.ndarray, time_mm2: float) -> np.ndarray:

@@ -362,9 +362,9 @@ def _write_surface_artifacts(cloud, field, frame, fit_config, refine_plan, tmp: 
 
 
 def _refined(mesh, points_mm: np.ndarray, config, plan):
-    """The mesh with its vertices refined onto the input points (`refine.refine_vertices` under
-    `plan`), or, where the plan finds the input too noisy for that, with its noise bias removed
-    (`noise_bias.remove_noise_bias`, config.noise_flow_factor); and the summary (with its seconds)."""
+    """The mesh with its vertices refined onto the input points under `plan`
+    (`refine.refine_vertices`: onto the patches, or for a too-noisy input the noise-bias flow), and
+    the summary (with its seconds)."""
     import time
 
     import trimesh
@@ -373,11 +373,6 @@ def _refined(mesh, points_mm: np.ndarray, config, plan):
 
     t0 = time.perf_counter()
     vertices, summary = refine_vertices(mesh.vertices, points_mm, config, plan, faces=mesh.faces)
-    if plan.too_noisy and config.noise_flow_factor > 0:  # noise the patches cannot average: its bias is removed
-        from .noise_bias import normal_noise_mm, remove_noise_bias
-
-        sigma = normal_noise_mm(plan.patch_residual_mm, plan.neighbours)
-        vertices, summary["noise_flow"] = remove_noise_bias(vertices, mesh.faces, sigma, config.noise_flow_factor)
     out = trimesh.Trimesh(vertices, mesh.faces, process=False)
     out.metadata.update(mesh.metadata)
     return out, {**summary, "seconds": round(time.perf_counter() - t0, 3)}

@@ -17,6 +17,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+#: coefficients of a patch's height field (a0..a5): a least-squares fit of k points keeps (k - 6) / k
+#: of the sample noise's variance in its residuals (noise_bias.normal_noise_mm)
+HEIGHT_FIELD_TERMS = 6
+
 
 @dataclass
 class LocalQuadrics:
@@ -39,7 +43,7 @@ class LocalQuadrics:
 
 
 def _monomials(u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """(...) u, v -> (..., 6) the height field's basis 1, u, v, u^2, uv, v^2."""
+    """(...) u, v -> (..., HEIGHT_FIELD_TERMS) the height field's basis 1, u, v, u^2, uv, v^2."""
     return np.stack([np.ones_like(u), u, v, u * u, u * v, v * v], axis=-1)
 
 
@@ -60,11 +64,11 @@ def fit_local_quadrics(points: np.ndarray, k: int = 20, chunk: int = 25_000,
     pts = np.asarray(points, dtype=np.float64)
     at = np.arange(len(pts)) if at is None else np.asarray(at)
     n = len(at)
-    k = int(min(max(k, 6), len(pts)))
+    k = int(min(max(k, HEIGHT_FIELD_TERMS), len(pts)))
     dist, nn = (tree if tree is not None else cKDTree(pts)).query(pts[at], k=k, workers=-1)
     centre = np.empty((n, 3))
     frame = np.empty((n, 3, 3))
-    coef = np.empty((n, 6))
+    coef = np.empty((n, HEIGHT_FIELD_TERMS))
     residual = np.empty(n)
     for s in range(0, n, chunk):
         sl = slice(s, min(s + chunk, n))
@@ -78,7 +82,7 @@ def fit_local_quadrics(points: np.ndarray, k: int = 20, chunk: int = 25_000,
         a = _monomials(u, v)
         r2 = np.maximum(dist[sl, -1:] ** 2, 1e-18)
         wt = np.exp(-(u * u + v * v) / r2)
-        ata = np.einsum("nk,nki,nkj->nij", wt, a, a) + 1e-10 * r2[:, :, None] * np.eye(6)
+        ata = np.einsum("nk,nki,nkj->nij", wt, a, a) + 1e-10 * r2[:, :, None] * np.eye(HEIGHT_FIELD_TERMS)
         atb = np.einsum("nk,nki,nk->ni", wt, a, w)
         coef[sl] = np.linalg.solve(ata, atb[..., None])[..., 0]
         err = w - np.einsum("nki,ni->nk", a, coef[sl])

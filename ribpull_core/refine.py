@@ -26,6 +26,7 @@ from scipy.sparse.linalg import splu
 from scipy.spatial import cKDTree
 
 from .config import RefineConfig
+from .noise_bias import normal_noise_mm, remove_noise_bias
 from .pointcloud import sampling_gap
 from .quadrics import fit_local_quadrics, project_onto_blended_quadrics
 
@@ -47,13 +48,15 @@ class RefinePlan:
 
     neighbours: points per patch; patch_radius_mm: median distance to the farthest of them;
     patch_residual_mm: median RMS distance of the points from their patches (sample noise plus
-    misfit), over a probe of the points; reason: why the input is not refined (None: it is)."""
+    misfit), over a probe of the points; reason: why the input is not refined (None: it is);
+    too_noisy: it is not refined because of its noise (not its sparsity), so its mesh gets the
+    noise-bias flow instead (`refine_vertices`)."""
 
     neighbours: int
     patch_radius_mm: float
     patch_residual_mm: float
     reason: str | None = None
-    too_noisy: bool = False  # not refined because of its noise (not its sparsity)
+    too_noisy: bool = False
 
     @property
     def applies(self) -> bool:
@@ -79,14 +82,13 @@ def plan_refinement(points_mm: np.ndarray, config: RefineConfig, tree: cKDTree |
     probe = np.arange(0, len(pts), max(1, len(pts) // n_probe))
     k, radius = patch_size(pts, config, tree, probe)
     residual = float(np.median(fit_local_quadrics(pts, k=k, tree=tree, at=probe).residual))
+    reason, too_noisy = None, False
     if radius > config.max_radius_mm:
         reason = f"input too sparse: {k} points span {radius:.1f} mm, over the {config.max_radius_mm} mm a patch may cover"
     elif residual / np.sqrt(k) > config.max_patch_noise_mm:
-        reason = (f"input too noisy: the points lie {residual:.2f} mm (RMS) off their patches, which "
-                  f"leaves {residual / np.sqrt(k):.2f} mm in a patch of {k}, over {config.max_patch_noise_mm} mm")
-    else:
-        reason = None
-    return RefinePlan(k, radius, residual, reason, too_noisy=reason is not None and radius <= config.max_radius_mm)
+        reason, too_noisy = (f"input too noisy: the points lie {residual:.2f} mm (RMS) off their patches, which "
+                             f"leaves {residual / np.sqrt(k):.2f} mm in a patch of {k}, over {config.max_patch_noise_mm} mm"), True
+    return RefinePlan(k, radius, residual, reason, too_noisy)
 
 
 def refine_vertices(vertices_mm: np.ndarray, points_mm: np.ndarray, config: RefineConfig,
@@ -94,14 +96,23 @@ def refine_vertices(vertices_mm: np.ndarray, points_mm: np.ndarray, config: Refi
                     faces: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
     """(V, 3) mesh vertices and (N, 3) input points, both mm -> ((V, 3) refined vertices in mm, a
     summary for metrics.json). plan: the input's `plan_refinement` (made here when not given); where
-    it does not apply the vertices come back unchanged, and the summary says why. faces: the mesh's
-    (F, 3) triangles; with them (and config.fair_order > 0) the vertices that did not move onto the
-    patches are faired between those that did (`fair_vertices`)."""
+    it does not apply the vertices come back unchanged, and the summary says why, except that an
+    input too noisy to refine (plan.too_noisy) gets its noise bias removed when the faces are given
+    (`noise_bias.remove_noise_bias` for config.noise_flow_factor; summary "noise_flow"). faces: the
+    mesh's (F, 3) triangles; with them (and config.fair_order > 0) the vertices that did not move
+    onto the patches are faired between those that did (`fair_vertices`)."""
     pts = np.asarray(points_mm, dtype=np.float64)
     verts = np.asarray(vertices_mm, dtype=np.float64)
     tree = tree if tree is not None else cKDTree(pts)
     plan = plan if plan is not None else plan_refinement(pts, config, tree)
-    if not plan.applies or len(verts) == 0:
+    if len(verts) == 0:
+        return verts, plan.summary()
+    if not plan.applies:
+        if plan.too_noisy and faces is not None and config.noise_flow_factor > 0:
+            # noise the patches cannot average: the offset it puts on a curved fit is taken off
+            sigma = normal_noise_mm(plan.patch_residual_mm, plan.neighbours)
+            verts, flow = remove_noise_bias(verts, faces, sigma, config.noise_flow_factor)
+            return verts, {**plan.summary(), "noise_flow": flow}
         return verts, plan.summary()
     gap = sampling_gap(pts, k=1, tree=tree)  # median nearest-neighbour distance
     patches = fit_local_quadrics(pts, k=plan.neighbours, tree=tree)

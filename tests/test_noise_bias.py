@@ -9,7 +9,7 @@ import trimesh
 
 from ribpull_core.config import RefineConfig
 from ribpull_core.noise_bias import mean_curvature_flow, normal_noise_mm, remove_noise_bias
-from ribpull_core.refine import plan_refinement
+from ribpull_core.refine import plan_refinement, refine_vertices
 
 RADIUS_MM = 20.0
 #: the sampled sphere: 10k points on it are ~0.7 mm apart, and a patch spans ~4 mm (as at the
@@ -51,12 +51,20 @@ def test_the_flow_takes_the_noise_offset_off_a_surface_fitted_through_noisy_poin
     offset = np.linalg.norm(_sphere_points(400_000, noise, seed=2), axis=1).mean() - SAMPLED_RADIUS_MM
     assert abs(offset - noise**2 / SAMPLED_RADIUS_MM) < 0.005, offset
     inflated = trimesh.creation.icosphere(subdivisions=4, radius=SAMPLED_RADIUS_MM + offset)  # a fit through them
-    plan = plan_refinement(_sphere_points(10_000, noise, seed=4), RefineConfig())
+    points = _sphere_points(10_000, noise, seed=4)
+    plan = plan_refinement(points, RefineConfig())
     sigma = normal_noise_mm(plan.patch_residual_mm, plan.neighbours)
     out, summary = remove_noise_bias(inflated.vertices, inflated.faces, sigma)
     left = np.linalg.norm(out, axis=1).mean() - SAMPLED_RADIUS_MM
     assert abs(left) < 0.3 * offset, (left, offset, summary)
     assert summary["sigma_mm"] == round(sigma, 4) and summary["mean_shift_mm"] > 0.6 * offset
+    # the refinement (what the pipeline calls) applies that flow where its plan finds the input too noisy
+    refined, refine_summary = refine_vertices(inflated.vertices, points, RefineConfig(), plan, faces=inflated.faces)
+    assert plan.too_noisy and refine_summary["noise_flow"] == summary, refine_summary
+    assert np.allclose(refined, out)
+    for config, faces in ((RefineConfig(noise_flow_factor=0.0), inflated.faces), (RefineConfig(), None)):
+        unchanged, unflowed = refine_vertices(inflated.vertices, points, config, plan, faces=faces)
+        assert np.array_equal(unchanged, inflated.vertices) and "noise_flow" not in unflowed
 
 
 def test_the_plan_tells_a_too_noisy_input_from_a_too_sparse_one():
