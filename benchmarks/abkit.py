@@ -22,19 +22,41 @@ class RefineChange:
     values: dict
 
 
+@dataclasses.dataclass(frozen=True)
+class LabelMapChange:
+    """A change for `fit_default` to the `default` run preset's LabelMapConfig (its fields replaced
+    by `values`), e.g. LabelMapChange({"boundary_sigma_mm": 0.6})."""
+
+    values: dict
+
+
+@dataclasses.dataclass(frozen=True)
+class Changes:
+    """Several changes for `fit_default` at once (each a RefineChange, LabelMapChange or SparseOcc
+    config function)."""
+
+    parts: tuple
+
+
 @contextlib.contextmanager
 def default_preset_changed(change):
     """Within the block, the `default` preset is changed: a RefineChange replaces fields of its
-    RefineConfig; any other change is a SparseOccConfig -> SparseOccConfig function applied to
-    SparseOcc's `default` config; None leaves it as it is."""
+    RefineConfig, a LabelMapChange of its LabelMapConfig, Changes applies several; any other
+    change is a SparseOccConfig -> SparseOccConfig function applied to SparseOcc's `default`
+    config; None leaves it as it is."""
     import ribpull_core.methods as methods
     import ribpull_core.methods.sparseocc as so
 
     original, run = so.SparseOcc.presets["default"], methods.RUN_PRESETS["default"]
-    if isinstance(change, RefineChange):
-        methods.RUN_PRESETS["default"] = dataclasses.replace(run, refine=dataclasses.replace(run.refine, **change.values))
-    elif change is not None:
-        so.SparseOcc.presets["default"] = lambda: change(original())
+    for part in (change.parts if isinstance(change, Changes) else (change,)):
+        preset = methods.RUN_PRESETS["default"]
+        if isinstance(part, RefineChange):
+            methods.RUN_PRESETS["default"] = dataclasses.replace(preset, refine=dataclasses.replace(preset.refine, **part.values))
+        elif isinstance(part, LabelMapChange):
+            methods.RUN_PRESETS["default"] = dataclasses.replace(preset, label_map=dataclasses.replace(preset.label_map, **part.values))
+        elif part is not None:
+            method_preset = so.SparseOcc.presets["default"]
+            so.SparseOcc.presets["default"] = lambda p=part, m=method_preset: p(m())
     try:
         yield
     finally:

@@ -72,12 +72,20 @@ class RefineConfig:
     refinement; 64: 0.228, +8.3 s).
 
     noise_flow_factor: an input not refined because it is too noisy has its mesh moved by
-    `noise_bias.remove_noise_bias` instead: a mean-curvature flow for factor x sigma^2 / 2 (sigma:
+    `curvature_bias.remove_noise_bias` instead: a mean-curvature flow for factor x sigma^2 / 2 (sigma:
     the noise along the normal, from the plan's patch residual), which takes off the sigma^2 H
     offset that noise on a curved surface puts on a fit (0 disables). On the bench's phantom (1M
     samples, 2026-12-03; meshes of the default with 70 % facing): 60k / 1 mm 0.4594 -> 0.4393 mm
     (screened Poisson 0.4487), 20k / 1 mm 0.6879 -> 0.6452 (0.5724); factor 0.5 / 1.5 / 2: 0.4447 /
     0.4402 / 0.4460 at 60k, 0.6575 / 0.6449 / 0.6529 at 20k.
+
+    smoothing_bias_factor: a label map's boundary points lie on its blurred mask, which sits inside
+    the surface by 2 H t (t: PointCloud.boundary_smoothing_mm2, from the blur and the voxel box);
+    the refined mesh is moved back out by factor x that (`curvature_bias.restore_smoothing_bias`; 0
+    disables). On the bench's partial-volume phantom maps (1M samples, 2026-12-03,
+    benchmarks/label_map_bias_ab.py, blur 0.9 mm), CD-L1 / HD without -> with it: 1.5 mm 0.2730 /
+    1.18 -> 0.2471 / 0.96 mm (marching cubes + 20 Taubin 0.2672 / 1.03); 0.75 x 0.75 x 2.5 mm
+    0.2727 / 1.32 -> 0.2597 / 1.25 (0.3096 / 1.33); sternum 1.5 mm 0.2944 -> 0.2678 (0.2852).
 
     Chosen on the phantom (300k-sample CD-L1 of the refined mesh, mm): the best patch held ~20
     points at 60k points (4.0 mm) and ~13 at 20k (5.5 mm); patches wider than ~6 mm (10k points and
@@ -101,6 +109,7 @@ class RefineConfig:
     dense_max_neighbours: int = 48
     dense_mesh_resolution: int = 384
     noise_flow_factor: float = 1.0
+    smoothing_bias_factor: float = 1.0
 
 
 @dataclass

@@ -346,7 +346,7 @@ def _write_surface_artifacts(cloud, field, frame, fit_config, refine_plan, tmp: 
         mesh, cleanup = remove_unsupported_components(mesh, cloud.points, support_distance_mm(cloud.points))
         mesh.metadata["cleanup"] = cleanup
         if refine_plan is not None:
-            mesh, mesh.metadata["refine"] = _refined(mesh, cloud.points, fit_config.refine, refine_plan)
+            mesh, mesh.metadata["refine"] = _refined(mesh, cloud, fit_config.refine, refine_plan)
         artifacts = {Path(v).name: Path(v) for v in export_mesh(mesh, tmp).values()}
     with timed("sdf"):
         shape, affine = sdf_grid_for(cloud, frame, fit_config.sdf)
@@ -361,10 +361,11 @@ def _write_surface_artifacts(cloud, field, frame, fit_config, refine_plan, tmp: 
     return artifacts
 
 
-def _refined(mesh, points_mm: np.ndarray, config, plan):
-    """The mesh with its vertices refined onto the input points under `plan`
-    (`refine.refine_vertices`: onto the patches, or for a too-noisy input the noise-bias flow), and
-    the summary (with its seconds)."""
+def _refined(mesh, cloud, config, plan):
+    """The mesh with its vertices refined onto the cloud's points under `plan`
+    (`refine.refine_vertices`: onto the patches, and then out by the smoothing a label map's
+    boundary points carry; or for a too-noisy input the noise-bias flow), and the summary (with
+    its seconds)."""
     import time
 
     import trimesh
@@ -372,7 +373,8 @@ def _refined(mesh, points_mm: np.ndarray, config, plan):
     from .refine import refine_vertices
 
     t0 = time.perf_counter()
-    vertices, summary = refine_vertices(mesh.vertices, points_mm, config, plan, faces=mesh.faces)
+    vertices, summary = refine_vertices(mesh.vertices, cloud.points, config, plan, faces=mesh.faces,
+                                        smoothing_time_mm2=cloud.boundary_smoothing_mm2)
     out = trimesh.Trimesh(vertices, mesh.faces, process=False)
     out.metadata.update(mesh.metadata)
     return out, {**summary, "seconds": round(time.perf_counter() - t0, 3)}

@@ -18,7 +18,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 #: coefficients of a patch's height field (a0..a5): a least-squares fit of k points keeps (k - 6) / k
-#: of the sample noise's variance in its residuals (noise_bias.normal_noise_mm)
+#: of the sample noise's variance in its residuals (curvature_bias.normal_noise_mm)
 HEIGHT_FIELD_TERMS = 6
 
 

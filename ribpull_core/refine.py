@@ -26,7 +26,7 @@ from scipy.sparse.linalg import splu
 from scipy.spatial import cKDTree
 
 from .config import RefineConfig
-from .noise_bias import normal_noise_mm, remove_noise_bias
+from .curvature_bias import normal_noise_mm, remove_noise_bias, restore_smoothing_bias
 from .pointcloud import sampling_gap
 from .quadrics import fit_local_quadrics, project_onto_blended_quadrics
 
@@ -93,14 +93,17 @@ def plan_refinement(points_mm: np.ndarray, config: RefineConfig, tree: cKDTree |
 
 def refine_vertices(vertices_mm: np.ndarray, points_mm: np.ndarray, config: RefineConfig,
                     plan: RefinePlan | None = None, tree: cKDTree | None = None,
-                    faces: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
+                    faces: np.ndarray | None = None, smoothing_time_mm2: float = 0.0) -> tuple[np.ndarray, dict]:
     """(V, 3) mesh vertices and (N, 3) input points, both mm -> ((V, 3) refined vertices in mm, a
     summary for metrics.json). plan: the input's `plan_refinement` (made here when not given); where
     it does not apply the vertices come back unchanged, and the summary says why, except that an
     input too noisy to refine (plan.too_noisy) gets its noise bias removed when the faces are given
-    (`noise_bias.remove_noise_bias` for config.noise_flow_factor; summary "noise_flow"). faces: the
+    (`curvature_bias.remove_noise_bias` for config.noise_flow_factor; summary "noise_flow"). faces: the
     mesh's (F, 3) triangles; with them (and config.fair_order > 0) the vertices that did not move
-    onto the patches are faired between those that did (`fair_vertices`)."""
+    onto the patches are faired between those that did (`fair_vertices`). smoothing_time_mm2: the
+    points lie on a smoothed surface (PointCloud.boundary_smoothing_mm2, a label map's); with the
+    faces the refined vertices are moved back out by config.smoothing_bias_factor x that
+    (`curvature_bias.restore_smoothing_bias`; summary "smoothing_bias")."""
     pts = np.asarray(points_mm, dtype=np.float64)
     verts = np.asarray(vertices_mm, dtype=np.float64)
     tree = tree if tree is not None else cKDTree(pts)
@@ -123,9 +126,13 @@ def refine_vertices(vertices_mm: np.ndarray, points_mm: np.ndarray, config: Refi
     n_faired = 0
     if faces is not None and config.fair_order > 0 and not moved.all():
         out, n_faired = fair_vertices(out, faces, ~moved, order=config.fair_order)
-    return out, {**plan.summary(), "moved_fraction": round(float(moved.mean()), 4),
-                 "mean_shift_mm": round(float(shift[moved].mean()), 4) if moved.any() else 0.0,
-                 "faired_vertices": int(n_faired)}
+    summary = {**plan.summary(), "moved_fraction": round(float(moved.mean()), 4),
+               "mean_shift_mm": round(float(shift[moved].mean()), 4) if moved.any() else 0.0,
+               "faired_vertices": int(n_faired)}
+    if faces is not None and smoothing_time_mm2 > 0 and config.smoothing_bias_factor > 0:
+        # the patches follow points on a smoothed surface: its inward offset is taken off
+        out, summary["smoothing_bias"] = restore_smoothing_bias(out, faces, smoothing_time_mm2, config.smoothing_bias_factor)
+    return out, summary
 
 
 def uniform_laplacian(faces: np.ndarray, n_vertices: int) -> sp.csr_matrix:

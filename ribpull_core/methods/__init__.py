@@ -15,8 +15,13 @@ from ..errors import RibPullInputError
 from .base import Method
 from .training import with_schedule
 
-#: label maps: std (mm) of the smoothing that places the boundary points between voxel centres
-LABEL_MAP_SIGMA_MM = 0.6
+#: label maps: std (mm) of the smoothing that places the boundary points between voxel centres. With
+#: the smoothing's inward offset restored after refinement (RefineConfig.smoothing_bias_factor), a
+#: wider blur averages more of the staircase: CD-L1 at 0.6 / 0.9 / 1.2 mm on the bench's 1.5 mm map
+#: 0.2500 / 0.2471 / 0.2469 (HD 0.91 / 0.96 / 1.01; marching cubes + 20 Taubin 0.2672 / 1.03), at
+#: 0.75 x 0.75 x 2.5 mm 0.2661 / 0.2597 / 0.2521 (0.3096 / 1.33); 1M samples,
+#: benchmarks/label_map_bias_ab.py, 2026-12-03. 0.9 keeps the HD further below the baseline's.
+LABEL_MAP_SIGMA_MM = 0.9
 
 #: method name -> "module:Class"
 METHOD_CLASSES = {

@@ -1,4 +1,4 @@
-"""The noise bias of a fit to noisy points and its removal (ribpull_core.noise_bias): the implicit
+"""The noise bias of a fit to noisy points and its removal (ribpull_core.curvature_bias): the implicit
 mean-curvature flow moves a sphere inward by 2 H t (and nothing for t = 0); the noise
 estimate from quadric patch residuals recovers the std of the samples' noise; points with
 isotropic noise sit sigma^2 H outside a sphere, and the flow the pipeline applies takes that off;
@@ -8,7 +8,8 @@ import numpy as np
 import trimesh
 
 from ribpull_core.config import RefineConfig
-from ribpull_core.noise_bias import mean_curvature_flow, normal_noise_mm, remove_noise_bias
+from ribpull_core.curvature_bias import mean_curvature_flow, normal_noise_mm, remove_noise_bias, reverse_curvature_flow
+from ribpull_core.pointcloud import PointCloud, mask_boundary_cloud
 from ribpull_core.refine import plan_refinement, refine_vertices
 
 RADIUS_MM = 20.0
@@ -33,6 +34,9 @@ def test_flow_moves_a_sphere_inward_by_twice_its_mean_curvature_times_t():
     assert abs(radii.mean() - expected) < 0.02, radii.mean()
     assert radii.std() < 0.01
     assert np.array_equal(mean_curvature_flow(sphere.vertices, sphere.faces, 0.0), sphere.vertices)
+    grown = np.linalg.norm(reverse_curvature_flow(sphere.vertices, sphere.faces, t), axis=1)
+    assert abs(grown.mean() - (RADIUS_MM + 2.0 * t / RADIUS_MM)) < 0.02, grown.mean()  # outward by 2 H t
+    assert grown.std() < 0.01
 
 
 def test_noise_estimate_from_the_patch_residual_recovers_the_noise():
@@ -75,3 +79,39 @@ def test_the_plan_tells_a_too_noisy_input_from_a_too_sparse_one():
     assert not sparse.applies and not sparse.too_noisy, sparse
     clean = plan_refinement(_sphere_points(10_000, 0.1, seed=3), config)
     assert clean.applies and not clean.too_noisy, clean
+
+
+def _sphere_label_map(radius_mm: float, voxel_mm: float) -> PointCloud:
+    """A partial-volume label map of a sphere (a voxel is set when more than half of it is inside,
+    from 7^3 sub-samples), as the NIfTI loader gives it: its voxel centres, mm."""
+    n = int(np.ceil(2 * radius_mm / voxel_mm)) + 6
+    affine = np.diag([voxel_mm, voxel_mm, voxel_mm, 1.0])
+    affine[:3, 3] = -0.5 * (n - 1) * voxel_mm
+    sub = (np.arange(7) - 3) / 7.0 * voxel_mm
+    centres = np.stack(np.meshgrid(*[affine[0, 3] + voxel_mm * np.arange(n)] * 3, indexing="ij"), -1)
+    inside = np.zeros((n, n, n))
+    for dx in sub:
+        for dy in sub:
+            for dz in sub:
+                inside += np.linalg.norm(centres + [dx, dy, dz], axis=-1) < radius_mm
+    ijk = np.argwhere(inside > 0.5 * 7**3)
+    return PointCloud(points=ijk * voxel_mm + affine[:3, 3], labels=np.ones(len(ijk)), nifti_affine=affine, nifti_shape=(n, n, n))
+
+
+def test_a_label_maps_smoothed_boundary_sits_inside_by_the_smoothing_and_the_refinement_takes_it_off():
+    radius, voxel, sigma = 8.0, 1.5, 0.9  # a rib's curvature, the bench's voxels and the default blur
+    cloud = mask_boundary_cloud(_sphere_label_map(radius, voxel), subvoxel_sigma_mm=sigma)
+    t = cloud.boundary_smoothing_mm2
+    assert abs(t - (sigma**2 + voxel**2 / 12) / 2) < 1e-9 and 0.4 < t < 0.6, t
+    inward = radius - np.linalg.norm(cloud.points, axis=1).mean()
+    # 2 H t, H = 1 / R (measured: 0.154 mm against 0.125; the discrete blur is not quite a Gaussian)
+    assert 0.7 * 2 * t / radius < inward < 1.4 * 2 * t / radius, (inward, 2 * t / radius)
+    # a mesh through those points, refined onto them, is moved back out onto the sphere
+    through = trimesh.creation.icosphere(subdivisions=5, radius=radius - inward)
+    config = RefineConfig(min_neighbours=20)
+    out, summary = refine_vertices(through.vertices, cloud.points, config, faces=through.faces, smoothing_time_mm2=t)
+    assert summary["applied"] and summary["smoothing_bias"]["flow_time_mm2"] == round(t, 4), summary
+    assert abs(np.linalg.norm(out, axis=1).mean() - radius) < 0.4 * inward, np.linalg.norm(out, axis=1).mean()
+    unmoved, _ = refine_vertices(through.vertices, cloud.points, RefineConfig(min_neighbours=20, smoothing_bias_factor=0.0),
+                                 faces=through.faces, smoothing_time_mm2=t)
+    assert np.linalg.norm(unmoved, axis=1).mean() < radius - 0.6 * inward
