@@ -44,8 +44,11 @@ def flow_step(vertices_mm: np.ndarray, faces: np.ndarray, time_mm2: float):
     function (V, 3) -> (V, 3) that applies (M + t L)^-1 M, with L and M the cotangent Laplacian and
     mass matrix of robust_laplacian at (V, 3) vertices_mm (intrinsic Delaunay, so sliver triangles
     of marching cubes do not give negative weights) and (F, 3) faces. Applied to the vertices it
-    flows them; applied to any per-vertex field it smooths that field over the surface."""
+    flows them; applied to any per-vertex field it smooths that field over the surface. For
+    time_mm2 <= 0 or an empty mesh: the identity (a copy)."""
     verts = np.asarray(vertices_mm, dtype=np.float64)
+    if time_mm2 <= 0 or len(verts) == 0:
+        return lambda values: np.array(values, dtype=np.float64)
     laplacian, mass = robust_laplacian.mesh_laplacian(verts, np.asarray(faces, dtype=np.int64))
     solve = sla.splu((mass + time_mm2 * laplacian).tocsc())
     return lambda values: solve.solve(mass @ values)
@@ -56,8 +59,6 @@ def mean_curvature_flow(vertices_mm: np.ndarray, faces: np.ndarray, time_mm2: fl
     length time_mm2: (M + t L) x' = M x. Implicit, so any t is stable; for small t each vertex
     moves 2 H t along its inward normal."""
     verts = np.asarray(vertices_mm, dtype=np.float64)
-    if time_mm2 <= 0 or len(verts) == 0:
-        return verts.copy()
     return flow_step(verts, faces, time_mm2)(verts)
 
 
@@ -68,8 +69,6 @@ def reverse_curvature_flow(vertices_mm: np.ndarray, faces: np.ndarray, time_mm2:
     step(x) - x (-2 H t n, and minus the mesh's finest bumps), smoothed by the same step (which
     takes those bumps out of it), and subtracted: x' = x - step(d)."""
     verts = np.asarray(vertices_mm, dtype=np.float64)
-    if time_mm2 <= 0 or len(verts) == 0:
-        return verts.copy()
     step = flow_step(verts, faces, time_mm2)
     return verts - step(step(verts) - verts)
 

@@ -111,9 +111,11 @@ def mask_boundary_cloud(cloud: PointCloud, max_points: int = 120_000, seed: int 
     (`boundary_smoothing_time_mm2`).
     """
     inside, labels, lo = _mask_volume(cloud)
-    blurs = None
+    blurs, smoothing_mm2 = None, 0.0
     if subvoxel_sigma_mm > 0:
-        blurs = _structure_blurs(labels, subvoxel_sigma_mm / voxel_spacing_mm(cloud))
+        spacing = voxel_spacing_mm(cloud)
+        blurs = _structure_blurs(labels, subvoxel_sigma_mm / spacing)
+        smoothing_mm2 = boundary_smoothing_time_mm2(subvoxel_sigma_mm, spacing)
     centres, face_labels = [], []
     for axis in range(3):
         for step in (1, -1):
@@ -145,9 +147,7 @@ def mask_boundary_cloud(cloud: PointCloud, max_points: int = 120_000, seed: int 
                       nifti_affine=cloud.nifti_affine, nifti_shape=cloud.nifti_shape,
                       label_names=dict(cloud.label_names), occupancy_points=cloud.occupancy_points,
                       occupancy_inside=cloud.occupancy_inside, occupancy_distance_mm=cloud.occupancy_distance_mm,
-                      dicom_source=cloud.dicom_source,
-                      boundary_smoothing_mm2=boundary_smoothing_time_mm2(subvoxel_sigma_mm, voxel_spacing_mm(cloud))
-                      if subvoxel_sigma_mm > 0 else 0.0)
+                      dicom_source=cloud.dicom_source, boundary_smoothing_mm2=smoothing_mm2)
 
 
 def boundary_smoothing_time_mm2(sigma_mm: float, spacing_mm: np.ndarray) -> float:
