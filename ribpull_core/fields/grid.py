@@ -2,7 +2,7 @@
 
 Why: the paper's 8x256 MLP costs ~458 ms per iteration on a 2-core CPU. A grid encoding puts most of
 the capacity in table look-ups, so a tiny decoder MLP suffices and an iteration costs a fraction of
-that. Tables are one `nn.Embedding` trained with fused dense Adam (on a CPU, coalescing sparse gradients
+that. Tables are one `nn.Embedding` trained with fused dense Adam (`methods.optimizer`; on a CPU, coalescing sparse gradients
 costs more than updating the whole table); coarse levels whose grid fits in the table are indexed densely (no hash
 collisions). Output: 2 logits [out, in] like SparseOcc, plus a sphere prior (inside radius
 `init_radius`) so U has a usable gradient from the first iteration.

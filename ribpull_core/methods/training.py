@@ -28,6 +28,7 @@ from .base import (
     seed_everything,
     warmup_cosine_lr,
 )
+from .optimizer import make_optimizer
 
 if TYPE_CHECKING:  # pragma: no cover
     from .base import Method
@@ -119,11 +120,6 @@ class LossLog:
         return {k: float(np.mean(v)) for k, v in self._terms.items()}
 
 
-def _make_optimizer(groups: list[dict], device: torch.device) -> torch.optim.Adam:
-    fused = device.type == "cpu" and all(p.dtype == torch.float32 for g in groups for p in g["params"])
-    return torch.optim.Adam(groups, fused=fused)
-
-
 def train(method: Method, points_unit: np.ndarray, device: torch.device, progress: ProgressFn | None = None,
           should_cancel: CancelFn | None = None, known: KnownOccupancy | None = None,
           labels: np.ndarray | None = None) -> FittedField:
@@ -148,7 +144,7 @@ def train(method: Method, points_unit: np.ndarray, device: torch.device, progres
         g.setdefault("base_lr", schedule.lr)
         g["params"] = list(g["params"])
         g["lr"] = g["base_lr"]
-    opt = _make_optimizer(groups, device)
+    opt = make_optimizer(groups, device)
     params = [p for g in groups for p in g["params"]]
     report = ProgressThrottle(progress, schedule.iterations)
     log = LossLog(schedule.iterations, schedule.history_points)
