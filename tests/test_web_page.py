@@ -100,6 +100,10 @@ def enter_key(pg, url: str, key: str = servicekit.KEY_A) -> None:
     pg.fill("#api-key", key)
     pg.click("#key-form button[type=submit]")
     pg.wait_for_function("() => document.getElementById('key-state').textContent.includes('API key set')")
+    # the key's job list has answered (rows, or 'No jobs yet'): a submit before that could take an
+    # older job of the session's service, shown late, for the new one
+    pg.wait_for_function("() => document.querySelector('#jobs tbody tr') !== null"
+                         " || !document.getElementById('jobs-empty').hidden")
 
 
 def row(pg, job_id: str):
