@@ -5,7 +5,7 @@ add_param_group and step are wrapped by torch._disable_dynamo): ~2.4 s of a 2-co
 every `ribpull fit` from the command line and by every bench run (each its own process), ~10 % of
 a whole 60k-point fit. `FusedAdam` runs the same kernel that torch.optim.Adam(fused=True) runs
 (aten::_fused_adam_), with torch's defaults (betas 0.9 / 0.999, eps 1e-8, no weight decay, no
-AMSGrad), so a fit's trajectory is the same; tests/test_training.py checks it step by step against
+AMSGrad), so a fit's trajectory is the same; tests/test_optimizer.py checks it step by step against
 torch.optim.Adam. `make_optimizer` keeps torch.optim.Adam off the CPU and for other dtypes.
 """
 
@@ -20,7 +20,7 @@ EPS = 1e-8
 class FusedAdam:
     """Adam over param groups, each a dict with "params" (a list of float32 tensors) and "lr"
     (read at every step, so a schedule may change it between steps). The interface the loop
-    uses: zero_grad(set_to_none=True), step(). Parameters without a gradient in a step are
+    uses: zero_grad() (gradients set to None, torch.optim's default), step(). Parameters without a gradient in a step are
     skipped and keep their moments, as in torch.optim."""
 
     def __init__(self, groups: list[dict]):
@@ -28,13 +28,10 @@ class FusedAdam:
         # per parameter: (exp_avg, exp_avg_sq, step), step a float32 scalar tensor as torch's fused path keeps it
         self.state: dict[torch.Tensor, tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = {}
 
-    def zero_grad(self, set_to_none: bool = True) -> None:
+    def zero_grad(self) -> None:
         for group in self.param_groups:
             for p in group["params"]:
-                if set_to_none:
-                    p.grad = None
-                elif p.grad is not None:
-                    p.grad.zero_()
+                p.grad = None
 
     def _state_of(self, p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         state = self.state.get(p)

@@ -157,7 +157,7 @@ def train(method: Method, points_unit: np.ndarray, device: torch.device, progres
             g["lr"] = learning_rate(schedule, step, g["base_lr"])
         terms = method.get_loss_dict(module, step)
         loss = sum(terms.values())
-        opt.zero_grad(set_to_none=True)
+        opt.zero_grad()
         loss.backward()
         if schedule.grad_clip:
             torch.nn.utils.clip_grad_norm_(params, schedule.grad_clip)
