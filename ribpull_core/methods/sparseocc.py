@@ -326,7 +326,7 @@ def oriented_normals(points_unit: np.ndarray, outside: np.ndarray, spacing: floa
     _, nn = tree.query(points_unit, k=min(k, len(points_unit)), workers=-1)
     nb = points_unit[nn] - points_unit[nn].mean(axis=1, keepdims=True)
     # the covariance's least eigenvector: the SVD's last right singular vector, ~2.5x faster
-    normals = np.ascontiguousarray(np.linalg.eigh(np.einsum("nki,nkj->nij", nb, nb))[1][:, :, 0])
+    normals = np.ascontiguousarray(np.linalg.eigh(np.matmul(nb.transpose(0, 2, 1), nb))[1][:, :, 0])
     smooth = ndimage.gaussian_filter(outside.astype(np.float32), 1.0)
     coords = ((points_unit - origin) / spacing - 0.5).T
     flip = np.einsum("ij,ij->i", normals, indicator_gradient(smooth, coords)) < 0
