@@ -112,6 +112,20 @@ def test_cancel_leaves_no_output(small_phantom, tmp_path):
     assert not out.exists() and not list(tmp_path.glob(".ribpull-*"))
 
 
+def test_cancel_during_the_skeleton_leaves_no_output_and_no_sdf_thread(small_phantom, tmp_path):
+    import threading
+
+    _, path = small_phantom
+    out = tmp_path / "out"
+    stages = []
+    with pytest.raises(JobCanceled):
+        run_pipeline(path, out, PipelineOptions(preset="smoke"), progress=lambda p: stages.append(p.stage),
+                     should_cancel=lambda: "skeleton" in stages)
+    assert "sdf" in stages and "skeleton" in stages and "metrics" not in stages
+    assert not out.exists() and not list(tmp_path.glob(".ribpull-*"))
+    assert not [t for t in threading.enumerate() if t.name.startswith("ribpull-sdf")]  # joined, not left running
+
+
 def test_bad_options_are_input_errors(small_phantom, tmp_path):
     _, path = small_phantom
     for opts in (PipelineOptions(preset="nope"), PipelineOptions(method="nope"), PipelineOptions(iterations=0),

@@ -29,6 +29,7 @@ from ribpull_core.methods.sparseocc import (
     SparseOcc,
     distance_to_points,
     gap_points,
+    indicator_gradient,
     margin_and_gradient,
     space_labels,
 )
@@ -123,6 +124,18 @@ def test_space_labels_on_a_sphere_are_right():
     assert (np.linalg.norm(lab.near_in, axis=1) < 0.5).mean() > 0.99
     assert (np.linalg.norm(lab.near_out, axis=1) > 0.5).mean() > 0.99
     assert 0 < lab.offset < 0.1
+
+
+def test_indicator_gradient_is_the_interpolated_volume_gradient_away_from_the_border():
+    from scipy import ndimage
+
+    rng = np.random.default_rng(4)
+    volume = ndimage.gaussian_filter(rng.random((30, 25, 20)).astype(np.float32), 1.5)
+    coords = (1.0 + rng.random((3, 500)) * (np.array(volume.shape)[:, None] - 3.0))  # at least a voxel inside
+    want = np.stack([ndimage.map_coordinates(np.gradient(volume, axis=a), coords, order=1) for a in range(3)], 1)
+    got = indicator_gradient(volume, coords)
+    assert got.shape == (500, 3) and np.abs(want).max() > 1e-3
+    np.testing.assert_allclose(got, want, atol=1e-6)
 
 
 def test_margin_uncertainty_is_the_difference_of_the_softmax_probabilities():
