@@ -233,6 +233,7 @@ def run_pipeline(
     from .io import load_point_cloud
     from .methods import build_fit_config
     from .pointcloud import mask_band_samples, mask_boundary_cloud
+    from .refine import refinement_patches
 
     options = options or PipelineOptions()
     report = _Reporter(progress, should_cancel)
@@ -280,11 +281,14 @@ def run_pipeline(
                     cloud = mask_band_samples(cloud, width_voxels=lm.band_voxels, seed=options.seed)
                 cloud = mask_boundary_cloud(cloud, seed=options.seed, subvoxel_sigma_mm=lm.boundary_sigma_mm)
             reference, reference_name = _reference_for_metrics(options, cloud)
-        with timed("fit"):
+        with timed("fit"), ThreadPoolExecutor(max_workers=1, thread_name_prefix="ribpull-patches") as pool:
             refine_plan = _plan_refinement(cloud, fit_config, options)
+            patch_job = pool.submit(refinement_patches, cloud.points, refine_plan) \
+                if _patches_beside_the_fit(cloud, refine_plan) else None
             field, frame = fit_field(cloud, fit_config, device, report)
+            patches = patch_job.result() if patch_job is not None else None
         with timed("mesh"):
-            mesh = _surface_mesh(cloud, field, frame, fit_config, refine_plan, report)
+            mesh = _surface_mesh(cloud, field, frame, fit_config, refine_plan, patches, report)
         # The SDF volume (and the weights) is made in a thread beside the skeleton, the metrics and
         # the files: each leaves a core idle much of its time (kd-tree waits, single-threaded
         # scipy), so together they take about the longer one's time (60k points: 4.8 -> 3.3 s,
@@ -350,6 +354,20 @@ def run_pipeline(
         shutil.rmtree(tmp, ignore_errors=True)
 
 
+#: point-neighbour pairs of the refinement's patches above which they are made beside the training
+#: (`_patches_beside_the_fit`)
+PATCHES_BESIDE_FIT_MIN_PAIRS = 2_500_000
+
+
+def _patches_beside_the_fit(cloud, plan) -> bool:
+    """Whether the refinement's patches (they depend on the input alone) are made in a thread beside
+    the training, whose threads leave some of the cores' time: where they are many. `ribpull fit`
+    wall, old -> new, this machine: 105k label-map boundary points x 32 neighbours 29.2 / 30.1 ->
+    27.4 / 28.3 s, 200k points x 48 40.7 -> 38.9 s; but 60k points x 19 19.4 / 19.1 -> 20.0 / 19.7
+    s (the slower training costs more than the patches' 0.3 s), hence the bound."""
+    return plan is not None and plan.applies and len(cloud.points) * plan.neighbours >= PATCHES_BESIDE_FIT_MIN_PAIRS
+
+
 def _plan_refinement(cloud, fit_config, options: PipelineOptions):
     """The input's refine.RefinePlan, or None when the preset does not refine. A label map is refined
     onto its boundary points (placed between the voxel centres), like a point cloud. A plan that applies
@@ -377,9 +395,10 @@ def _plan_refinement(cloud, fit_config, options: PipelineOptions):
     return plan
 
 
-def _surface_mesh(cloud, field, frame, fit_config, refine_plan, report: _Reporter):
+def _surface_mesh(cloud, field, frame, fit_config, refine_plan, patches, report: _Reporter):
     """The field's mesh in mm: marching cubes, unsupported components removed, then refined onto
-    the input under `refine_plan` (a refine.RefinePlan; None: not refined). Stage "mesh"."""
+    the input under `refine_plan` (a refine.RefinePlan; None: not refined) and `patches`
+    (refine.refinement_patches, or None: made there). Stage "mesh"."""
     from .mesh import extract_mesh, remove_unsupported_components
 
     lo, hi = frame.to_unit(cloud.points).min(0), frame.to_unit(cloud.points).max(0)
@@ -388,7 +407,7 @@ def _surface_mesh(cloud, field, frame, fit_config, refine_plan, report: _Reporte
     mesh, cleanup = remove_unsupported_components(mesh, cloud.points, support_distance_mm(cloud.points))
     mesh.metadata["cleanup"] = cleanup
     if refine_plan is not None:
-        mesh, mesh.metadata["refine"] = _refined(mesh, cloud, fit_config.refine, refine_plan)
+        mesh, mesh.metadata["refine"] = _refined(mesh, cloud, fit_config.refine, refine_plan, patches)
     return mesh
 
 
@@ -410,11 +429,11 @@ def _sdf_and_weights(cloud, mesh, field, frame, fit_config, tmp: Path, report: _
     return artifacts, (volume, affine)
 
 
-def _refined(mesh, cloud, config, plan):
+def _refined(mesh, cloud, config, plan, patches=None):
     """The mesh with its vertices refined onto the cloud's points under `plan`
     (`refine.refine_vertices`: onto the patches, and then out by the smoothing a label map's
     boundary points carry; or for a too-noisy input the noise-bias flow), and the summary (with
-    its seconds)."""
+    its seconds). patches: (kd-tree, patches) from refine.refinement_patches, or None (made here)."""
     import time
 
     import trimesh
@@ -422,8 +441,9 @@ def _refined(mesh, cloud, config, plan):
     from .refine import refine_vertices
 
     t0 = time.perf_counter()
-    vertices, summary = refine_vertices(mesh.vertices, cloud.points, config, plan, faces=mesh.faces,
-                                        smoothing_time_mm2=cloud.boundary_smoothing_mm2)
+    tree, patches = patches if patches is not None else (None, None)
+    vertices, summary = refine_vertices(mesh.vertices, cloud.points, config, plan, tree=tree, faces=mesh.faces,
+                                        smoothing_time_mm2=cloud.boundary_smoothing_mm2, patches=patches)
     out = trimesh.Trimesh(vertices, mesh.faces, process=False)
     out.metadata.update(mesh.metadata)
     return out, {**summary, "seconds": round(time.perf_counter() - t0, 3)}

@@ -28,7 +28,7 @@ from scipy.spatial import cKDTree
 from .config import RefineConfig
 from .curvature_bias import normal_noise_mm, remove_noise_bias, restore_smoothing_bias
 from .pointcloud import sampling_gap
-from .quadrics import fit_local_quadrics, project_onto_blended_quadrics
+from .quadrics import LocalQuadrics, fit_local_quadrics, project_onto_blended_quadrics
 
 
 def patch_size(points_mm: np.ndarray, config: RefineConfig, tree: cKDTree, probe: np.ndarray) -> tuple[int, float]:
@@ -91,9 +91,19 @@ def plan_refinement(points_mm: np.ndarray, config: RefineConfig, tree: cKDTree |
     return RefinePlan(k, radius, residual, reason, too_noisy)
 
 
+def refinement_patches(points_mm: np.ndarray, plan: RefinePlan) -> tuple[cKDTree, LocalQuadrics]:
+    """(kd-tree of the (N, 3) points in mm, their quadric patches of plan.neighbours points): what
+    `refine_vertices` projects the vertices onto. It depends on the input alone, so the pipeline
+    makes it while the field trains."""
+    pts = np.asarray(points_mm, dtype=np.float64)
+    tree = cKDTree(pts)
+    return tree, fit_local_quadrics(pts, k=plan.neighbours, tree=tree)
+
+
 def refine_vertices(vertices_mm: np.ndarray, points_mm: np.ndarray, config: RefineConfig,
                     plan: RefinePlan | None = None, tree: cKDTree | None = None,
-                    faces: np.ndarray | None = None, smoothing_time_mm2: float = 0.0) -> tuple[np.ndarray, dict]:
+                    faces: np.ndarray | None = None, smoothing_time_mm2: float = 0.0,
+                    patches: LocalQuadrics | None = None) -> tuple[np.ndarray, dict]:
     """(V, 3) mesh vertices and (N, 3) input points, both mm -> ((V, 3) refined vertices in mm, a
     summary for metrics.json). plan: the input's `plan_refinement` (made here when not given); where
     it does not apply the vertices come back unchanged, and the summary says why, except that an
@@ -103,7 +113,8 @@ def refine_vertices(vertices_mm: np.ndarray, points_mm: np.ndarray, config: Refi
     onto the patches are faired between those that did (`fair_vertices`). smoothing_time_mm2: the
     points lie on a smoothed surface (PointCloud.boundary_smoothing_mm2, a label map's); with the
     faces the refined vertices are moved back out by config.smoothing_bias_factor x that
-    (`curvature_bias.restore_smoothing_bias`; summary "smoothing_bias")."""
+    (`curvature_bias.restore_smoothing_bias`; summary "smoothing_bias"). patches (with `tree`):
+    `refinement_patches` of the points under `plan`, made beforehand (made here when not given)."""
     pts = np.asarray(points_mm, dtype=np.float64)
     verts = np.asarray(vertices_mm, dtype=np.float64)
     tree = tree if tree is not None else cKDTree(pts)
@@ -118,7 +129,7 @@ def refine_vertices(vertices_mm: np.ndarray, points_mm: np.ndarray, config: Refi
             return verts, {**plan.summary(), "noise_flow": flow}
         return verts, plan.summary()
     gap = sampling_gap(pts, k=1, tree=tree)  # median nearest-neighbour distance
-    patches = fit_local_quadrics(pts, k=plan.neighbours, tree=tree)
+    patches = patches if patches is not None else fit_local_quadrics(pts, k=plan.neighbours, tree=tree)
     projected = project_onto_blended_quadrics(verts, patches, tree, blend=config.blend)
     shift = np.linalg.norm(projected - verts, axis=1)
     moved = shift <= config.max_shift_gaps * gap

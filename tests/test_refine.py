@@ -10,7 +10,7 @@ from scipy.spatial import cKDTree
 
 from ribpull_core.config import RefineConfig
 from ribpull_core.methods import build_fit_config
-from ribpull_core.refine import fair_vertices, patch_size, plan_refinement, refine_vertices
+from ribpull_core.refine import fair_vertices, patch_size, plan_refinement, refine_vertices, refinement_patches
 
 RADIUS_MM = 20.0
 
@@ -44,6 +44,19 @@ def test_refinement_brings_a_perturbed_mesh_onto_the_sampled_surface():
     # the noise of the samples is averaged away: the refined surface beats the samples themselves
     assert after < 0.5 * _radial_error(pts).mean()
     assert out.shape == mesh.vertices.shape and np.isfinite(out).all()
+
+
+def test_patches_made_beforehand_refine_the_same():
+    pts = _sphere_points(8000, 0.3, seed=0)
+    mesh = _perturbed_sphere_mesh(0.4, seed=1)
+    config = RefineConfig()
+    plan = plan_refinement(pts, config)
+    tree, patches = refinement_patches(pts, plan)
+    assert len(patches.centre) == len(pts)
+    here, s_here = refine_vertices(mesh.vertices, pts, config, plan, faces=mesh.faces)
+    before, s_before = refine_vertices(mesh.vertices, pts, config, plan, tree=tree, faces=mesh.faces, patches=patches)
+    np.testing.assert_array_equal(before, here)
+    assert s_before == s_here and s_here["moved_fraction"] > 0.9
 
 
 def test_patch_size_follows_the_radius_within_its_bounds():
