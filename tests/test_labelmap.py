@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ribpull_core.pointcloud import PointCloud, mask_band_samples, mask_boundary_cloud, voxel_spacing_mm
+from ribpull_core.pointcloud import PointCloud, band_distances, mask_band_samples, mask_boundary_cloud, voxel_spacing_mm
 
 RADIUS_MM = 12.0
 
@@ -46,6 +46,23 @@ def test_band_samples_state_the_side_of_the_voxel_centres(spacing):
     d = cloud.occupancy_distance_mm
     assert d.min() > 0 and d.max() <= 2 * max(spacing) + 1e-6
     assert np.allclose(voxel_spacing_mm(cloud), spacing)
+
+
+def test_band_distances_are_the_thresholded_distance_transforms():
+    from scipy import ndimage
+
+    rng = np.random.default_rng(2)
+    inside = ndimage.gaussian_filter(rng.random((40, 36, 18)), 2.0) > 0.5  # blobs, touching the border too
+    inside[0], inside[:, -1] = True, False
+    spacing = np.array([0.75, 0.9, 2.5])
+    reach = 2 * 2.5 + 1e-6
+    dist = np.where(inside, ndimage.distance_transform_edt(inside, sampling=spacing),
+                    ndimage.distance_transform_edt(~inside, sampling=spacing))
+    want = np.flatnonzero(dist <= reach)
+    flat, got = band_distances(inside, spacing, reach)
+    assert 0 < len(want) < inside.size
+    np.testing.assert_array_equal(flat, want)
+    np.testing.assert_allclose(got, dist.ravel()[want], rtol=0, atol=1e-12)
 
 
 @pytest.mark.parametrize("spacing", [(1.5, 1.5, 1.5), (0.75, 0.75, 2.5)])
