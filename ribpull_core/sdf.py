@@ -24,6 +24,7 @@ from .mesh import _double_areas, _sample_triangles, inside_scores, sample_surfac
 from .methods.base import FittedField
 from .metrics import morton_order
 from .pointcloud import PointCloud
+from .sdf_kernels import relax_step
 
 #: voxels processed per chunk (bounds memory: ~100 bytes per voxel in flight)
 CHUNK = 1 << 20
@@ -213,14 +214,8 @@ class SurfaceDistance:
         best = sq(full, cp)
         for _ in range(self.relax_sweeps):  # a neighbour's closest point may be closer: take it
             for o in self.relax_offsets:
-                dst = tuple(slice(max(0, -k), n - max(0, k)) for k, n in zip(o, shape))
-                src = tuple(slice(max(0, k), n - max(0, -k)) for k, n in zip(o, shape))
-                cand = cp[(slice(None),) + src]
-                dc = sq(dst, cand)
-                better = dc < best[dst]
-                best[dst][better] = dc[better]
-                for k in range(3):
-                    cp[k][dst][better] = cand[k][better]
+                axis = int(np.flatnonzero(o)[0])
+                relax_step(cp, best, ax[0], ax[1], ax[2], axis, int(o[axis]))
         self._cp = cp  # (3, n0, n1, n2)
         self.cp_grid = np.ascontiguousarray(np.moveaxis(cp, 0, -1))  # (n0, n1, n2, 3) for point queries
 
