@@ -44,8 +44,8 @@ def default_preset_changed(change):
     RefineConfig, a LabelMapChange of its LabelMapConfig, Changes applies several; any other
     change is a SparseOccConfig -> SparseOccConfig function applied to SparseOcc's `default`
     config; None leaves it as it is."""
-    import ribpull_core.methods as methods
     import ribpull_core.methods.sparseocc as so
+    from ribpull_core import methods
 
     original, run = so.SparseOcc.presets["default"], methods.RUN_PRESETS["default"]
     for part in (change.parts if isinstance(change, Changes) else (change,)):

@@ -8,7 +8,12 @@ import numpy as np
 import trimesh
 
 from ribpull_core.config import RefineConfig
-from ribpull_core.curvature_bias import mean_curvature_flow, normal_noise_mm, remove_noise_bias, reverse_curvature_flow
+from ribpull_core.curvature_bias import (
+    mean_curvature_flow,
+    normal_noise_mm,
+    remove_noise_bias,
+    reverse_curvature_flow,
+)
 from ribpull_core.pointcloud import PointCloud, mask_boundary_cloud
 from ribpull_core.refine import plan_refinement, refine_vertices
 

@@ -5,7 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ribpull_core.pointcloud import PointCloud, band_distances, mask_band_samples, mask_boundary_cloud, voxel_spacing_mm
+from ribpull_core.pointcloud import (
+    PointCloud,
+    band_distances,
+    mask_band_samples,
+    mask_boundary_cloud,
+    voxel_spacing_mm,
+)
 
 RADIUS_MM = 12.0
 

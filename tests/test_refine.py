@@ -10,7 +10,13 @@ from scipy.spatial import cKDTree
 
 from ribpull_core.config import RefineConfig
 from ribpull_core.methods import build_fit_config
-from ribpull_core.refine import fair_vertices, patch_size, plan_refinement, refine_vertices, refinement_patches
+from ribpull_core.refine import (
+    fair_vertices,
+    patch_size,
+    plan_refinement,
+    refine_vertices,
+    refinement_patches,
+)
 
 RADIUS_MM = 20.0
 
