@@ -110,7 +110,8 @@ class SurfaceDistance:
     """
 
     relax_sweeps = 2
-    relax_offsets = ((1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0), (0, 0, 1), (0, 0, -1))
+    #: (axis, step) of each relaxation step of a sweep: the 6 axis neighbours
+    relax_steps = ((0, 1), (0, -1), (1, 1), (1, -1), (2, 1), (2, -1))
 
     def __init__(
         self,
@@ -202,20 +203,12 @@ class SurfaceDistance:
         cp = cp[:, src].reshape((3,) + shape)
         del src
         ax = [(self.origin[k] + np.arange(shape[k]) * g).astype(np.float32) for k in range(3)]
-        node = (ax[0][:, None, None], ax[1][None, :, None], ax[2][None, None, :])
-
-        def sq(dst, cand):
-            out = (node[0][dst[0]] - cand[0]) ** 2
-            out += (node[1][:, dst[1]] - cand[1]) ** 2
-            out += (node[2][:, :, dst[2]] - cand[2]) ** 2
-            return out
-
-        full = (slice(None),) * 3
-        best = sq(full, cp)
+        best = (ax[0][:, None, None] - cp[0]) ** 2  # squared distance (mm^2, float32) to the stored point
+        best += (ax[1][None, :, None] - cp[1]) ** 2
+        best += (ax[2][None, None, :] - cp[2]) ** 2
         for _ in range(self.relax_sweeps):  # a neighbour's closest point may be closer: take it
-            for o in self.relax_offsets:
-                axis = int(np.flatnonzero(o)[0])
-                relax_step(cp, best, ax[0], ax[1], ax[2], axis, int(o[axis]))
+            for axis, step in self.relax_steps:
+                relax_step(cp, best, ax[0], ax[1], ax[2], axis, step)
         self._cp = cp  # (3, n0, n1, n2)
         self.cp_grid = np.ascontiguousarray(np.moveaxis(cp, 0, -1))  # (n0, n1, n2, 3) for point queries
 

@@ -1,10 +1,10 @@
 """Compiled CPU kernel (numba) for `sdf.SurfaceDistance`'s closest-point grid: one relaxation step.
 
 A step along one axis and direction lets every node take its neighbour's stored closest point
-when that point is nearer to the node. It computes exactly what the numpy step computes (each node
-reads its neighbour's point from before the step, float32 arithmetic in the same order), in one
-loop instead of a dozen full-volume temporaries: the 1.5 mm label map's 5.1M-node grid's 12 steps
-~1 s -> ~0.1 s.
+when that point is nearer to the node, each node reading its neighbour's point from before the
+step (float32 arithmetic). One loop instead of the whole-array numpy step's dozen full-volume
+temporaries it replaced (the same grid bit for bit): the 1.5 mm label map's 5.1M-node grid's 12
+steps ~1 s -> ~0.1 s.
 """
 
 from __future__ import annotations
