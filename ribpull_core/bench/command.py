@@ -51,6 +51,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--methods", nargs="+", default=None,
                         help="only methods whose label starts with one of these (or of this kind: pipeline, poisson, "
                              "mask_mc, mc_taubin)")
+    parser.add_argument("--variants", nargs="+", default=None,
+                        help="only the cases of these variants, e.g. n60000-noise0.3 mask1.5mm-pv "
+                             "sternum-mask1.5mm-pv (a subset of a plan: a GPU run, a re-check)")
     parser.add_argument("--points", type=int, default=None,
                         help=f"points of the main phantom case (default {QUICK_POINTS}; not used by the sweep)")
     parser.add_argument("--label-map", default=str(REAL_LABEL_MAP), help="the real label map case ('' to leave out)")
@@ -113,6 +116,17 @@ def importlib_missing(name: str) -> bool:
     return importlib.util.find_spec(name) is None
 
 
+def only_variants(plan: list, cases: list[Case], variants: list[str], notes: list[str]) -> tuple[list, list[Case]]:
+    """The plan and cases cut to the cases whose variant is one of `variants`; a note names the
+    variants asked for that the plan does not have, and those it has."""
+    wanted = set(variants)
+    have = [c.variant for c in cases if c.variant]
+    unknown = sorted(wanted - set(have))
+    if unknown:
+        notes.append(f"--variants {', '.join(unknown)}: not in this plan; it has {', '.join(dict.fromkeys(have))}")
+    return [(m, c) for m, c in plan if c.variant in wanted], [c for c in cases if c.variant in wanted]
+
+
 def main(args: argparse.Namespace) -> int:
     """`ribpull bench`: build the plan, run it, write the outputs, print results.md. 0 if any row succeeded."""
     outdir = Path(args.output)
@@ -131,6 +145,8 @@ def main(args: argparse.Namespace) -> int:
     plan, cases = build_plan(mode, outdir / "cases", seeds, args.points,
                              Path(args.cases) if args.cases else None,
                              Path(args.label_map) if args.label_map else None, args.methods, notes)
+    if args.variants:
+        plan, cases = only_variants(plan, cases, args.variants, notes)
     if importlib_missing("pymeshlab"):
         notes.append("screened Poisson skipped: pymeshlab is not installed (pip install 'ribpull[bench]')")
         plan = [(m, c) for m, c in plan if m.kind != "poisson"]
