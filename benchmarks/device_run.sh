@@ -8,12 +8,7 @@ set -uo pipefail
 OUT=${OUT:-/tmp/ribpull-device-out}
 mkdir -p "$OUT"
 exec > >(tee "$OUT/log.txt") 2>&1
-SITE=/tmp/site
-python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target "$SITE" .whl/*.whl || exit 3
-tar xzf .whl/pymeshlab312.tgz -C "$SITE" || exit 3
-# pymeshlab's wheel trimmed to the Poisson filter, with the GL / X libraries the bare image lacks
-export PYTHONPATH="$SITE:$PWD" PYTHONUNBUFFERED=1 LD_LIBRARY_PATH="$SITE/pymeshlab/lib/sys:${LD_LIBRARY_PATH:-}"
-ribpull() { python3 -m ribpull_core.cli "$@"; }
+source benchmarks/device_env.sh
 
 { nvidia-smi -L; nproc; python3 -c "import pymeshlab" || echo "pymeshlab does not load: the bench skips or fails its Poisson rows"
   python3 -c "import sys, torch, numpy, scipy, numba, skimage, trimesh
