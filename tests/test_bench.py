@@ -420,3 +420,37 @@ def test_sweep_report_floors_ratio_speed_and_plot(tmp_path):
     assert _non_blank(out["cdl1_vs_points.png"])
     assert len(bench.read_csv(out["sweep.csv"])) == 9
     assert bench.rewrite_outputs(tmp_path, {"mode": "sweep"})["markdown"] == text  # the same from the CSV
+
+
+def test_variants_cut_a_plan_to_the_named_cases_and_name_the_unknown(tmp_path):
+    """`--variants`: only the named cases' runs stay; a variant the plan lacks is named in a note."""
+    from ribpull_core.bench.command import only_variants
+
+    plan, cases = bench.build_plan("sweep", tmp_path / "cases", (0,), write=False)
+    notes: list[str] = []
+    cut, kept = only_variants(plan, cases, ["n60000-noise0.3", "mask1.5mm-pv", "n7-noise9"], notes)
+    assert [c.variant for c in kept] == ["n60000-noise0.3", "mask1.5mm-pv"]
+    assert sorted((m.kind, c.variant) for m, c in cut) == [
+        ("mask_mc", "mask1.5mm-pv"), ("mc_taubin", "mask1.5mm-pv"), ("pipeline", "mask1.5mm-pv"),
+        ("pipeline", "n60000-noise0.3"), ("poisson", "n60000-noise0.3")]
+    assert len(notes) == 1 and "n7-noise9" in notes[0] and "sternum-mask1.5mm-pv" in notes[0]
+
+
+def test_a_stopped_bench_keeps_the_rows_of_its_finished_runs(tmp_path):
+    """results.csv is written after every run, so the runs that finished survive a bench stopped
+    later (here: interrupted as its second run starts, as Ctrl-C or a time limit would), and
+    `--rewrite` reports them."""
+    case = bench.phantom_case(tmp_path / "cases", seed=0, n_points=3_000, noise_mm=0.3)
+    smoke = bench.MethodSpec("sparseocc smoke", "pipeline", preset="smoke", iterations=5)
+
+    def log(line: str) -> None:
+        if line.startswith("[2/2]"):
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        bench.run_bench(tmp_path / "out", [(smoke, case), (smoke, case)], metric_samples=20_000, log=log)
+    with open(tmp_path / "out" / "results.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == 1 and rows[0]["status"] == "ok" and rows[0]["method"] == "sparseocc smoke"
+    assert not (tmp_path / "out" / "results.md").exists()  # the report is written at the end only
+    assert "| sparseocc smoke | 1 |" in bench.rewrite_outputs(tmp_path / "out")["markdown"]

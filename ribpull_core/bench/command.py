@@ -23,7 +23,7 @@ from .plan import (
     skeleton_plan,
     speed_plan,
 )
-from .report import rewrite_outputs, speed_rows, write_outputs
+from .report import rewrite_outputs, speed_rows, write_csv, write_outputs
 from .run import run_plan
 
 #: what `--help` says each plan costs on the 2-core CPU (quick and docs measured; sweep estimated:
@@ -80,7 +80,9 @@ def run_bench(outdir: Path, plan: list, *, metric_samples: int = METRIC_SAMPLES,
     Returns write_outputs' dict plus "rows", "skeleton_rows", "speed"."""
     outdir = Path(outdir)
     t0 = time.perf_counter()
-    rows = run_plan(outdir, plan, metric_samples, device, timeout_s, log)
+    # results.csv grows run by run: a bench stopped part way keeps what finished (`--rewrite` reports it)
+    rows = run_plan(outdir, plan, metric_samples, device, timeout_s, log,
+                    on_row=lambda done: write_csv(outdir / "results.csv", done))
     skel_rows = None
     if skeleton_case is not None:
         log("skeleton section ...")

@@ -190,10 +190,11 @@ def run_task(task: dict, timeout_s: float | None = None) -> dict:
 
 
 def run_plan(outdir: Path, plan: list, metric_samples: int, device: str = "auto", timeout_s: float | None = None,
-             log=print) -> list[dict]:
+             log=print, on_row=None) -> list[dict]:
     """Run every (MethodSpec, Case) of the plan in order (writing phantom cases not on disk yet);
     renders each method on its first case with ground truth (copied to outdir/renders/). Returns the
-    rows."""
+    rows. on_row(rows so far), if given, is called after each run (the bench keeps a results.csv
+    of the finished runs, so a bench stopped part way still leaves them)."""
     rows, rendered = [], set()
     for i, (spec, case) in enumerate(plan, 1):
         render = case.truth_mesh is not None and spec.label not in rendered
@@ -204,6 +205,8 @@ def run_plan(outdir: Path, plan: list, metric_samples: int, device: str = "auto"
         log(f"[{i}/{len(plan)}] {spec.label} on {case.name} (seed {case.seed}) ...")
         row = run_task(task, timeout_s)
         rows.append(row)
+        if on_row is not None:
+            on_row(rows)
         copy_render(task, outdir)
         log(f"    {row_summary(row)}")
     return rows
