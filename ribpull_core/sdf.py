@@ -24,7 +24,7 @@ from .mesh import _double_areas, _sample_triangles, inside_scores, sample_surfac
 from .methods.base import FittedField
 from .metrics import morton_order
 from .pointcloud import PointCloud
-from .sdf_kernels import relax_step
+from .sdf_kernels import grid_upper_bounds, relax_step
 
 #: voxels processed per chunk (bounds memory: ~100 bytes per voxel in flight)
 CHUNK = 1 << 20
@@ -161,6 +161,7 @@ class SurfaceDistance:
         self.grid_mm = g
         self.origin = lo
         self.nodes = np.ceil((hi - lo) / g).astype(np.int64) + 1
+        self._nodes_i64 = np.ascontiguousarray(self.nodes, dtype=np.int64)
         self._build_grid()
 
     def _nearest_surface_point(self, p: np.ndarray, within_mm: float | None = None) -> np.ndarray:
@@ -222,19 +223,9 @@ class SurfaceDistance:
         return out
 
     def _distance(self, p: np.ndarray) -> np.ndarray:
-        f = (p - self.origin) / self.grid_mm
-        ingrid = np.all((f >= 0) & (f <= self.nodes - 1), axis=1)
-        c = np.clip(np.floor(f).astype(np.int64), 0, self.nodes - 2)
-        # the cell's 8 nodes by flat index (one take per corner, not a 3-index gather) and squared
-        # distances by row dot products: ~2x faster than norms of gathered differences
-        base = np.ravel_multi_index(c.T, tuple(self.nodes))
-        n1, n2 = int(self.nodes[1]), int(self.nodes[2])
-        grid = self.cp_grid.reshape(-1, 3)
-        d2 = np.full(len(p), np.inf)
-        for dx, dy, dz in np.ndindex(2, 2, 2):
-            diff = grid.take(base + (dx * n1 + dy) * n2 + dz, axis=0) - p
-            np.minimum(d2, np.einsum("ij,ij->i", diff, diff), out=d2)
-        d = np.sqrt(d2)
+        # the grid's bound: the nearest of the closest points stored at the cell's 8 nodes (compiled:
+        # the numpy gather of 8 (N, 3) takes it replaced cost ~25x more, 12.3M voxel centres ~4 s)
+        d, ingrid = grid_upper_bounds(self.cp_grid, self.origin, float(self.grid_mm), self._nodes_i64, p)
         near = np.flatnonzero(ingrid & (d < 3.0 * self.grid_mm))
         if len(near):
             # the nearest sample lies within the grid's upper bound plus a sample spacing or two

@@ -1,14 +1,18 @@
-"""Compiled CPU kernel (numba) for `sdf.SurfaceDistance`'s closest-point grid: one relaxation step.
+"""Compiled CPU kernels (numba) for `sdf.SurfaceDistance`'s closest-point grid: one relaxation
+step (`relax_step`), and the grid's distance bound at query points (`grid_upper_bounds`).
 
 A step along one axis and direction lets every node take its neighbour's stored closest point
 when that point is nearer to the node, each node reading its neighbour's point from before the
 step (float32 arithmetic). One loop instead of the whole-array numpy step's dozen full-volume
 temporaries it replaced (the same grid bit for bit): the 1.5 mm label map's 5.1M-node grid's 12
-steps ~1 s -> ~0.1 s.
+steps ~1 s -> ~0.1 s. `grid_upper_bounds` replaced a numpy gather of each point's 8 cell nodes:
+the 0.75 x 0.75 x 2.5 mm map's 12.3M voxel centres (not grid nodes, so queried as points) 4.6 ->
+2.7 s for the whole query, the SDF stage 12.6 / 11.3 -> 9.4 / 9.0 s, the same volume.
 """
 
 from __future__ import annotations
 
+import numpy as np
 from numba import njit, prange
 
 
@@ -51,3 +55,38 @@ def relax_step(cp, best, ax0, ax1, ax2, axis, step):  # pragma: no cover - compi
                     for t in range(n2 - 1):
                         k = t if step > 0 else n2 - 1 - t
                         _take_if_nearer(cp, best, ax0, ax1, ax2, i, j, k, i, j, k + step)
+
+
+@njit(parallel=True, cache=True)
+def grid_upper_bounds(cp_grid, origin, grid_mm, nodes, points):  # pragma: no cover - compiled
+    """Per point of (N, 3) float64 `points` (mm): the distance (mm, float64) to the nearest of the
+    closest points stored at its grid cell's 8 nodes (cp_grid (n0, n1, n2, 3) float32, node (i, j,
+    k) at origin + (i, j, k) x grid_mm; nodes (3,) int64 its shape), an upper bound of its distance
+    to the surface; and whether the point lies inside the grid. A point outside takes the nearest
+    cell. The same float64 arithmetic as the numpy gather it replaced (8 takes of (N, 3) rows and
+    row dots), without its temporaries."""
+    n = points.shape[0]
+    dist = np.empty(n)
+    ingrid = np.empty(n, dtype=np.bool_)
+    for q in prange(n):
+        inside = True
+        cell = np.empty(3, dtype=np.int64)
+        for a in range(3):
+            f = (points[q, a] - origin[a]) / grid_mm
+            if not (f >= 0.0 and f <= nodes[a] - 1):
+                inside = False
+            c = np.int64(np.floor(f))
+            cell[a] = min(max(c, 0), nodes[a] - 2)
+        best = np.inf
+        for dx in range(2):
+            for dy in range(2):
+                for dz in range(2):
+                    i, j, k = cell[0] + dx, cell[1] + dy, cell[2] + dz
+                    e0 = np.float64(cp_grid[i, j, k, 0]) - points[q, 0]
+                    e1 = np.float64(cp_grid[i, j, k, 1]) - points[q, 1]
+                    e2 = np.float64(cp_grid[i, j, k, 2]) - points[q, 2]
+                    d2 = e0 * e0 + e1 * e1 + e2 * e2
+                    best = min(best, d2)
+        dist[q] = np.sqrt(best)
+        ingrid[q] = inside
+    return dist, ingrid

@@ -331,6 +331,26 @@ def test_sdf_on_grid_pass_equals_point_queries(sphere_mesh, monkeypatch):
     assert calls and np.abs(grid - points).max() < 1e-4
 
 
+def test_grid_upper_bounds_equal_the_numpy_gather_of_the_cells_nodes(sphere_mesh):
+    """sdf_kernels.grid_upper_bounds: per point the nearest of the closest points stored at its
+    cell's 8 nodes, as a numpy gather computes it, for points inside and outside the grid."""
+    from ribpull_core.sdf import SurfaceDistance
+    from ribpull_core.sdf_kernels import grid_upper_bounds
+
+    dist = SurfaceDistance(sphere_mesh, n_samples=50_000, grid_mm=3.0)
+    lo, hi = dist.origin, dist.origin + (dist.nodes - 1) * dist.grid_mm
+    p = np.random.default_rng(0).uniform(lo - 20.0, hi + 20.0, (20_000, 3))
+    f = (p - dist.origin) / dist.grid_mm
+    cell = np.clip(np.floor(f).astype(np.int64), 0, dist.nodes - 2)
+    corners = np.array(list(np.ndindex(2, 2, 2)))
+    stored = dist.cp_grid[tuple((cell[:, None, :] + corners[None]).transpose(2, 0, 1))].astype(np.float64)  # (N, 8, 3)
+    expected = np.sqrt(((stored - p[:, None, :]) ** 2).sum(-1).min(1))
+    got, ingrid = grid_upper_bounds(dist.cp_grid, dist.origin, float(dist.grid_mm), dist.nodes.astype(np.int64), p)
+    np.testing.assert_allclose(got, expected, rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(ingrid, np.all((f >= 0) & (f <= dist.nodes - 1), axis=1))
+    assert 0 < ingrid.sum() < len(p)  # both kinds were checked
+
+
 def test_fast_surface_sampling_is_area_uniform():
     from ribpull_core.mesh import sample_surface_fast
 
