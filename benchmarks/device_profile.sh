@@ -8,7 +8,8 @@ OUT=${OUT:-/tmp/ribpull-device-out}
 mkdir -p "$OUT"
 exec > >(tee "$OUT/log.txt") 2>&1
 source benchmarks/device_env.sh
-python3 -m pytest -q -p no:cacheprovider tests/test_optimizer.py
+# --noconftest: the tests' conftest starts the service, whose packages (Celery, ...) the image lacks
+python3 -m pytest -q -p no:cacheprovider --noconftest tests/test_optimizer.py
 ribpull phantom /tmp/ph60 --points 60000 --noise 0.3
 time ribpull fit /tmp/ph60/points.ply -o /tmp/fit60a --device cuda -q
 time python3 - <<'PY' > "$OUT/profile.txt"

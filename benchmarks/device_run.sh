@@ -27,5 +27,7 @@ print(json.dumps({k: m.get(k) for k in ('device', 'fit_seconds', 'timings_s', 'r
 timeout "${BENCH_TIMEOUT_S:-420}" python3 -m ribpull_core.cli bench --plan sweep --device cuda -o /tmp/gpu \
     --variants n20000-noise0.3 n60000-noise0.3 n200000-noise0.3 mask1.5mm-pv mask0.75x0.75x2.5mm-pv \
     sternum-n60000-noise0.3 sternum-mask1.5mm-pv
+# stopped by the limit: results.csv holds the runs that finished; report them
+[ -f /tmp/gpu/results.md ] || python3 -m ribpull_core.cli bench --rewrite -o /tmp/gpu > /dev/null
 cp /tmp/gpu/results.csv /tmp/gpu/results.md "$OUT/" 2>/dev/null
 echo "device run done"
