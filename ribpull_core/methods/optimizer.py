@@ -58,7 +58,8 @@ class FusedAdam:
 def make_optimizer(groups: list[dict], device: torch.device):
     """The loop's Adam for param groups ("params" lists, "lr"): `FusedAdam` where every parameter
     is float32 on the CPU or a CUDA device (torch.optim.Adam(fused=True) runs the same kernel on
-    both), else torch.optim.Adam. On a GPU machine the _dynamo import cost 2-4 s of every fit too.
+    both), else torch.optim.Adam. On an H200 machine the _dynamo import was most of a 60k fit's
+    set-up: its fit stage went 11.4 -> 5.2 s (docs/benchmarks.md, GPU run).
     """
     fusable = torch.device(device).type in ("cpu", "cuda") and all(
         p.dtype == torch.float32 for g in groups for p in g["params"])
