@@ -233,7 +233,7 @@ def run_pipeline(
     from .io import load_point_cloud
     from .methods import build_fit_config
     from .pointcloud import mask_band_samples, mask_boundary_cloud
-    from .refine import refinement_patches
+    from .refine import point_weights_of, refinement_patches
 
     options = options or PipelineOptions()
     report = _Reporter(progress, should_cancel)
@@ -283,8 +283,8 @@ def run_pipeline(
             reference, reference_name = _reference_for_metrics(options, cloud)
         with timed("fit"), ThreadPoolExecutor(max_workers=1, thread_name_prefix="ribpull-patches") as pool:
             refine_plan = _plan_refinement(cloud, fit_config, options)
-            patch_job = pool.submit(refinement_patches, cloud.points, refine_plan) \
-                if _patches_beside_the_fit(cloud, refine_plan) else None
+            patch_job = pool.submit(lambda: refinement_patches(cloud.points, refine_plan, point_weights_of(
+                cloud, fit_config.refine))) if _patches_beside_the_fit(cloud, refine_plan) else None
             field, frame = fit_field(cloud, fit_config, device, report)
             patches = patch_job.result() if patch_job is not None else None
         with timed("mesh"):
@@ -438,12 +438,14 @@ def _refined(mesh, cloud, config, plan, patches=None):
 
     import trimesh
 
-    from .refine import refine_vertices
+    from .refine import point_weights_of, refine_vertices
 
     t0 = time.perf_counter()
     tree, patches = patches if patches is not None else (None, None)
+    weights = point_weights_of(cloud, config) if patches is None and plan.applies else None
     vertices, summary = refine_vertices(mesh.vertices, cloud.points, config, plan, tree=tree, faces=mesh.faces,
-                                        smoothing_time_mm2=cloud.boundary_smoothing_mm2, patches=patches)
+                                        smoothing_time_mm2=cloud.boundary_smoothing_mm2, patches=patches,
+                                        point_weights=weights)
     out = trimesh.Trimesh(vertices, mesh.faces, process=False)
     out.metadata.update(mesh.metadata)
     return out, {**summary, "seconds": round(time.perf_counter() - t0, 3)}

@@ -46,6 +46,9 @@ class PointCloud:
     #: the points lie on the input's surface after a mean-curvature flow of this time (mm^2): a label
     #: map's boundary points on its blurred mask (`boundary_smoothing_time_mm2`); 0: on the surface
     boundary_smoothing_mm2: float = 0.0
+    #: a label map's boundary points: (N,) int8 voxel axis (0, 1, 2 of the affine's columns) of the
+    #: voxel face each point stands for (`mask_boundary_cloud`); None for other inputs
+    face_axis: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.points = np.ascontiguousarray(self.points, dtype=np.float64).reshape(-1, 3)
@@ -98,7 +101,7 @@ def mask_boundary_cloud(cloud: PointCloud, max_points: int = 120_000, seed: int 
     0.274 mm, and the real TotalSegmentator map from 15 mesh components to its 12 ribs
     (docs/benchmarks.md). cloud: from a NIfTI label map (nifti_affine set). At most
     max_points faces are kept (a seeded uniform subset). Returns a PointCloud that keeps the cloud's
-    affine, shape, source format/bytes and label names.
+    affine, shape, source format/bytes and label names, and each point's face axis (`face_axis`).
 
     subvoxel_sigma_mm > 0 moves each face point along its axis to where the mask, smoothed by a
     Gaussian of that std (mm, per axis through the voxel spacing), crosses 0.5 between the two voxel
@@ -116,7 +119,7 @@ def mask_boundary_cloud(cloud: PointCloud, max_points: int = 120_000, seed: int 
         spacing = voxel_spacing_mm(cloud)
         blurs = _structure_blurs(labels, subvoxel_sigma_mm / spacing)
         smoothing_mm2 = boundary_smoothing_time_mm2(subvoxel_sigma_mm, spacing)
-    centres, face_labels = [], []
+    centres, face_labels, face_axes = [], [], []
     for axis in range(3):
         for step in (1, -1):
             neighbour_outside = ~np.roll(inside, -step, axis=axis)  # the padding keeps the roll from wrapping
@@ -134,11 +137,13 @@ def mask_boundary_cloud(cloud: PointCloud, max_points: int = 120_000, seed: int 
                     offset[sel, axis] = np.clip((a - 0.5) / np.maximum(a - b, 1e-6), 0.0, 1.0) * step
             centres.append(faces + lo + offset)
             face_labels.append(lab)
+            face_axes.append(np.full(len(faces), axis, dtype=np.int8))
     ijk_faces = np.concatenate(centres)
     face_labels = np.concatenate(face_labels)
+    face_axes = np.concatenate(face_axes)
     if len(ijk_faces) > max_points:
         keep = np.sort(np.random.default_rng(seed).choice(len(ijk_faces), max_points, replace=False))
-        ijk_faces, face_labels = ijk_faces[keep], face_labels[keep]
+        ijk_faces, face_labels, face_axes = ijk_faces[keep], face_labels[keep], face_axes[keep]
     from trimesh import transform_points
 
     return PointCloud(points=transform_points(ijk_faces, np.asarray(cloud.nifti_affine, dtype=np.float64)),
@@ -147,7 +152,7 @@ def mask_boundary_cloud(cloud: PointCloud, max_points: int = 120_000, seed: int 
                       nifti_affine=cloud.nifti_affine, nifti_shape=cloud.nifti_shape,
                       label_names=dict(cloud.label_names), occupancy_points=cloud.occupancy_points,
                       occupancy_inside=cloud.occupancy_inside, occupancy_distance_mm=cloud.occupancy_distance_mm,
-                      dicom_source=cloud.dicom_source, boundary_smoothing_mm2=smoothing_mm2)
+                      dicom_source=cloud.dicom_source, boundary_smoothing_mm2=smoothing_mm2, face_axis=face_axes)
 
 
 def boundary_smoothing_time_mm2(sigma_mm: float, spacing_mm: np.ndarray) -> float:

@@ -120,3 +120,47 @@ def test_a_label_maps_smoothed_boundary_sits_inside_by_the_smoothing_and_the_ref
     unmoved, _ = refine_vertices(through.vertices, cloud.points, RefineConfig(min_neighbours=20, smoothing_bias_factor=0.0),
                                  faces=through.faces, smoothing_time_mm2=t)
     assert np.linalg.norm(unmoved, axis=1).mean() < radius - 0.6 * inward
+
+
+def test_a_label_maps_terrace_points_are_down_weighted_and_its_risers_kept():
+    """refine.terrace_weights on a partial-volume sphere map's boundary points: near the poles (the
+    normal along z) the z faces are terraces and get the weight, the x / y faces between them are
+    risers and keep 1; at the equator along x, the x faces are the terraces."""
+    from ribpull_core.config import RefineConfig
+    from ribpull_core.refine import point_weights_of, terrace_weights
+
+    cloud = mask_boundary_cloud(_sphere_label_map(12.0, 1.0), subvoxel_sigma_mm=0.9)
+    assert cloud.face_axis is not None and len(cloud.face_axis) == len(cloud)
+    w = terrace_weights(cloud.points, cloud.face_axis, cloud.nifti_affine, 0.25)
+    unit = cloud.points / np.linalg.norm(cloud.points, axis=1, keepdims=True)
+    pole, equator_x = np.abs(unit[:, 2]) > 0.97, np.abs(unit[:, 0]) > 0.97
+    assert pole.sum() > 10 and equator_x.sum() > 10
+    assert np.all(w[pole & (cloud.face_axis == 2)] == 0.25) and np.all(w[pole & (cloud.face_axis != 2)] == 1.0)
+    assert np.all(w[equator_x & (cloud.face_axis == 0)] == 0.25)
+    assert 0.25 < w.mean() < 1.0
+    assert np.array_equal(point_weights_of(cloud, RefineConfig(terrace_weight=0.25)), w)
+    assert point_weights_of(cloud, RefineConfig(terrace_weight=1.0)) is None  # disabled
+    assert point_weights_of(PointCloud(points=cloud.points), RefineConfig()) is None  # not a label map
+
+
+def test_point_weights_shape_a_quadric_patch():
+    """fit_local_quadrics: unit weights fit what no weights fit; a zero-weighted stray sample
+    leaves the patch where the others put it."""
+    from ribpull_core.quadrics import fit_local_quadrics, project_onto_quadrics
+
+    rng = np.random.default_rng(0)
+    pts = np.c_[rng.uniform(-1, 1, (400, 2)), np.zeros(400)]
+    pts[0] = [0.0, 0.0, 0.1]  # one sample off the plane z = 0, inside its neighbours' patches
+    plain = fit_local_quadrics(pts, k=30)
+    ones = fit_local_quadrics(pts, k=30, point_weights=np.ones(len(pts)))
+    np.testing.assert_array_equal(plain.coef, ones.coef)
+    w = np.ones(len(pts))
+    w[0] = 0.0
+    weighted = fit_local_quadrics(pts, k=30, point_weights=w)
+    near = np.argsort(np.linalg.norm(pts[1:, :2], axis=1))[:5] + 1  # patches around the stray sample
+    above = np.zeros((len(near), 3))
+
+    def heights(patches):
+        return np.abs(project_onto_quadrics(above, near, patches)[:, 2])
+
+    assert heights(weighted).max() < 1e-9 and heights(plain).min() > 1e-3

@@ -35,7 +35,7 @@ from ..losses import (
     sign_margin_loss,
 )
 from ..pointcloud import sampling_gap
-from ..quadrics import LocalQuadrics, fit_local_quadrics, project_onto_quadrics
+from ..quadrics import LocalQuadrics, fit_local_quadrics, pca_normals, project_onto_quadrics
 from .base import FittedField, KnownOccupancy, Method, knn_sigma, sample_pull_queries
 from .training import ScheduleConfig
 
@@ -322,11 +322,7 @@ def oriented_normals(points_unit: np.ndarray, outside: np.ndarray, spacing: floa
     """(N, 3) unit normals by PCA over k neighbours, flipped to point towards the flood-filled outside
     (the gradient of a smoothed outside indicator). This orients the unoriented input from the data.
     tree: a kd-tree of `points_unit` to reuse."""
-    tree = tree if tree is not None else cKDTree(points_unit)
-    _, nn = tree.query(points_unit, k=min(k, len(points_unit)), workers=-1)
-    nb = points_unit[nn] - points_unit[nn].mean(axis=1, keepdims=True)
-    # the covariance's least eigenvector: the SVD's last right singular vector, ~2.5x faster
-    normals = np.ascontiguousarray(np.linalg.eigh(np.matmul(nb.transpose(0, 2, 1), nb))[1][:, :, 0])
+    normals = pca_normals(points_unit, k, tree)
     smooth = ndimage.gaussian_filter(outside.astype(np.float32), 1.0)
     coords = ((points_unit - origin) / spacing - 0.5).T
     flip = np.einsum("ij,ij->i", normals, indicator_gradient(smooth, coords)) < 0
