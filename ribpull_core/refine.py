@@ -102,8 +102,9 @@ def terrace_weights(points_mm: np.ndarray, face_axis: np.ndarray, affine: np.nda
     half a voxel of it, joined by risers (faces along the other axes), which sit where the surface
     crosses the height of a voxel centre. A terrace point is one whose face axis is the axis nearest
     its local (PCA) normal. Down-weighting them lets the risers set the height: on the bench's
-    maps (1M samples) weight 0.3 gave 1.5 mm 0.2473 -> 0.2456 mm CD-L1, 0.75 x 0.75 x 2.5 mm
-    0.2596 -> 0.2520 (docs/benchmarks.md)."""
+    partial-volume maps (benchmarks/terrace_ab.py, 1M samples, CD-L1 / HD mm) weight 0.3 against
+    1: 1.5 mm 0.2455 / 0.93 against 0.2473 / 0.95; 0.75 x 0.75 x 2.5 mm 0.2524 / 1.18 against
+    0.2596 / 1.21; sternum map 0.2663 / 1.42 against 0.2678 / 1.38 (weight 0.5: between the two)."""
     pts = np.asarray(points_mm, dtype=np.float64)
     normals = pca_normals(pts, tree=tree)
     a = np.asarray(affine, dtype=np.float64)[:3, :3]
