@@ -158,7 +158,11 @@ def refine_vertices(vertices_mm: np.ndarray, points_mm: np.ndarray, config: Refi
             # noise the patches cannot average: the offset it puts on a curved fit is taken off
             sigma = normal_noise_mm(plan.patch_residual_mm, plan.neighbours)
             verts, flow = remove_noise_bias(verts, faces, sigma, config.noise_flow_factor)
-            return verts, {**plan.summary(), "noise_flow": flow}
+            summary = {**plan.summary(), "noise_flow": flow}
+            if config.tube_along_mm > 0:
+                # then the noise a narrow isotropic patch cannot average, over patches long along the rib
+                verts, summary["tube_patches"] = _onto_tube_patches(verts, faces, pts, config, tree)
+            return verts, summary
         return verts, plan.summary()
     gap = sampling_gap(pts, k=1, tree=tree)  # median nearest-neighbour distance
     patches = patches if patches is not None else fit_local_quadrics(pts, k=plan.neighbours, tree=tree,
@@ -177,6 +181,23 @@ def refine_vertices(vertices_mm: np.ndarray, points_mm: np.ndarray, config: Refi
         # the patches follow points on a smoothed surface: its inward offset is taken off
         out, summary["smoothing_bias"] = restore_smoothing_bias(out, faces, smoothing_time_mm2, config.smoothing_bias_factor)
     return out, summary
+
+
+def _onto_tube_patches(vertices_mm: np.ndarray, faces: np.ndarray, points_mm: np.ndarray, config: RefineConfig,
+                       tree: cKDTree) -> tuple[np.ndarray, dict]:
+    """(V, 3) vertices (mm) of a mesh with (F, 3) faces moved onto tube-aligned quadrics of the (N, 3)
+    points (mm) (`tube_patches.project_onto_tube_patches` with config.tube_*), and a summary."""
+    import trimesh
+
+    from .tube_patches import project_onto_tube_patches
+
+    normals = trimesh.Trimesh(vertices_mm, faces, process=False).vertex_normals
+    out, moved = project_onto_tube_patches(vertices_mm, normals, points_mm, config.tube_along_mm,
+                                           config.tube_across_mm, k=config.tube_neighbours, tree=tree)
+    shift = np.linalg.norm(out - vertices_mm, axis=1)
+    return out, {"along_mm": config.tube_along_mm, "across_mm": config.tube_across_mm,
+                 "moved_fraction": round(float(moved.mean()), 4) if len(moved) else 0.0,
+                 "mean_shift_mm": round(float(shift[moved].mean()), 4) if moved.any() else 0.0}
 
 
 def uniform_laplacian(faces: np.ndarray, n_vertices: int) -> sp.csr_matrix:
