@@ -174,9 +174,7 @@ def refine_vertices(vertices_mm: np.ndarray, points_mm: np.ndarray, config: Refi
     n_faired = 0
     if faces is not None and config.fair_order > 0 and not moved.all():
         out, n_faired = fair_vertices(out, faces, ~moved, order=config.fair_order)
-    summary = {**plan.summary(), "moved_fraction": round(float(moved.mean()), 4),
-               "mean_shift_mm": round(float(shift[moved].mean()), 4) if moved.any() else 0.0,
-               "faired_vertices": int(n_faired)}
+    summary = {**plan.summary(), **_moved_summary(shift, moved), "faired_vertices": int(n_faired)}
     if faces is not None and smoothing_time_mm2 > 0 and config.smoothing_bias_factor > 0:
         # the patches follow points on a smoothed surface: its inward offset is taken off
         out, summary["smoothing_bias"] = restore_smoothing_bias(out, faces, smoothing_time_mm2, config.smoothing_bias_factor)
@@ -195,9 +193,13 @@ def _onto_tube_patches(vertices_mm: np.ndarray, faces: np.ndarray, points_mm: np
     out, moved = project_onto_tube_patches(vertices_mm, normals, points_mm, config.tube_along_mm,
                                            config.tube_across_mm, k=config.tube_neighbours, tree=tree)
     shift = np.linalg.norm(out - vertices_mm, axis=1)
-    return out, {"along_mm": config.tube_along_mm, "across_mm": config.tube_across_mm,
-                 "moved_fraction": round(float(moved.mean()), 4) if len(moved) else 0.0,
-                 "mean_shift_mm": round(float(shift[moved].mean()), 4) if moved.any() else 0.0}
+    return out, {"along_mm": config.tube_along_mm, "across_mm": config.tube_across_mm, **_moved_summary(shift, moved)}
+
+
+def _moved_summary(shift_mm: np.ndarray, moved: np.ndarray) -> dict:
+    """{moved_fraction, mean_shift_mm} for metrics.json: of (V,) vertex shifts (mm), which (V,) moved."""
+    return {"moved_fraction": round(float(moved.mean()), 4) if len(moved) else 0.0,
+            "mean_shift_mm": round(float(shift_mm[moved].mean()), 4) if moved.any() else 0.0}
 
 
 def uniform_laplacian(faces: np.ndarray, n_vertices: int) -> sp.csr_matrix:
