@@ -13,7 +13,9 @@ from servicekit import KEY_A, KEY_B, ROOT
 
 pytestmark = pytest.mark.service
 
-PARAMS = json.dumps({"preset": "smoke", "iterations": 20, "preview": False})
+# 300 iterations keep the training itself ~2.5 s long, several 0.3 s polls wide: with 20 it lasted
+# ~0.2 s and a poll could miss every iteration report (CI stop 33 saw only "running fit (2%)").
+PARAMS = json.dumps({"preset": "smoke", "iterations": 300, "preview": False})
 
 
 def ribpull(*args: str, timeout: float = 400) -> subprocess.CompletedProcess:
