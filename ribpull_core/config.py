@@ -27,6 +27,23 @@ class MeshConfig:
 
 
 @dataclass
+class TubePatchConfig:
+    """Patches long along a rib and narrow across it (`tube_patches.project_onto_tube_patches`).
+
+    along_mm, across_mm: the Gaussian weight's scales along the tube's axis and across it (mm;
+    along_mm 0 disables); neighbours: at most this many points per patch; max_move_mm: a vertex
+    whose patch is farther than this (mm) stays; max_axis_spread: a vertex where the surface bends
+    both ways (`tube_patches.tube_axes` spread above it) stays (None: no such limit).
+    """
+
+    along_mm: float = 14.0
+    across_mm: float = 2.5
+    neighbours: int = 160
+    max_move_mm: float = 2.0
+    max_axis_spread: float | None = None
+
+
+@dataclass
 class RefineConfig:
     """Mesh vertices projected onto the input points' local quadric patches (`ribpull_core.refine`).
 
@@ -91,15 +108,20 @@ class RefineConfig:
     the surface normal: they only bound the surface to half a voxel) count this much in the patches,
     the risers between them 1 (`refine.terrace_weights`; 1 disables).
 
-    tube_along_mm, tube_across_mm, tube_neighbours: after the noise flow, a too-noisy input's mesh
-    is projected onto quadrics of its points over patches long along the rib and narrow across it
-    (`tube_patches`: Gaussian scales in mm, at most tube_neighbours points; along 0 disables). 1M
-    samples, flow then 14 x 2.5 mm patches against the flow alone (/tmp harness on the meshes of
+    tube: after the noise flow, a too-noisy input's mesh is projected onto quadrics of its points
+    over patches long along the rib and narrow across it (a TubePatchConfig; along_mm 0 disables).
+    1M samples, flow then 14 x 2.5 mm patches against the flow alone (/tmp harness on the meshes of
     `default` without the flow, 2026-12-05, screened Poisson beside): 60k / 1 mm 0.4398 -> 0.4109
     mm (0.4488), 20k / 1 mm 0.6439 -> 0.5738 (0.5725); 10 x 2.5 mm: 0.4128, 0.5782; the patches
     before the flow instead: 0.4483, 0.6174. Not everywhere: on a circular 4 mm tube with 1 mm
     noise (tests/test_tube_patches.py's) they leave the flowed mesh worse (radial RMS 0.14 -> 0.28
     mm); the phantom's ribs are 5.5 x 3.5 mm ellipses.
+
+    label_map_tube: a label map's refined mesh, before the smoothing bias is restored, is projected
+    onto tube patches of its boundary points (terrace-weighted like the isotropic ones), which
+    average the voxel staircase over a rib's length; short moves only (max_move_mm) and only where
+    the surface is a tube's (max_axis_spread), since where it bends both ways (rib ends, the
+    cartilages' junctions with the sternum) the patches cut the corner (benchmarks/label_map_tube_ab.py).
 
     Chosen on the phantom (300k-sample CD-L1 of the refined mesh, mm): the best patch held ~20
     points at 60k points (4.0 mm) and ~13 at 20k (5.5 mm); patches wider than ~6 mm (10k points and
@@ -125,9 +147,9 @@ class RefineConfig:
     noise_flow_factor: float = 1.0
     smoothing_bias_factor: float = 1.0
     terrace_weight: float = 0.3
-    tube_along_mm: float = 14.0
-    tube_across_mm: float = 2.5
-    tube_neighbours: int = 160
+    tube: TubePatchConfig = field(default_factory=TubePatchConfig)
+    label_map_tube: TubePatchConfig = field(default_factory=lambda: TubePatchConfig(
+        along_mm=8.0, across_mm=2.0, max_move_mm=0.5, max_axis_spread=0.03))
 
 
 @dataclass

@@ -25,7 +25,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import splu
 from scipy.spatial import cKDTree
 
-from .config import RefineConfig
+from .config import RefineConfig, TubePatchConfig
 from .curvature_bias import normal_noise_mm, remove_noise_bias, restore_smoothing_bias
 from .pointcloud import sampling_gap
 from .quadrics import LocalQuadrics, fit_local_quadrics, pca_normals, project_onto_blended_quadrics
@@ -159,9 +159,9 @@ def refine_vertices(vertices_mm: np.ndarray, points_mm: np.ndarray, config: Refi
             sigma = normal_noise_mm(plan.patch_residual_mm, plan.neighbours)
             verts, flow = remove_noise_bias(verts, faces, sigma, config.noise_flow_factor)
             summary = {**plan.summary(), "noise_flow": flow}
-            if config.tube_along_mm > 0:
+            if config.tube.along_mm > 0:
                 # then the noise a narrow isotropic patch cannot average, over patches long along the rib
-                verts, summary["tube_patches"] = _onto_tube_patches(verts, faces, pts, config, tree)
+                verts, summary["tube_patches"] = _onto_tube_patches(verts, faces, pts, config.tube, tree)
             return verts, summary
         return verts, plan.summary()
     gap = sampling_gap(pts, k=1, tree=tree)  # median nearest-neighbour distance
@@ -175,25 +175,30 @@ def refine_vertices(vertices_mm: np.ndarray, points_mm: np.ndarray, config: Refi
     if faces is not None and config.fair_order > 0 and not moved.all():
         out, n_faired = fair_vertices(out, faces, ~moved, order=config.fair_order)
     summary = {**plan.summary(), **_moved_summary(shift, moved), "faired_vertices": int(n_faired)}
+    if faces is not None and smoothing_time_mm2 > 0 and config.label_map_tube.along_mm > 0:
+        # a label map's: the voxel staircase the round patches leave, averaged along the rib (all
+        # boundary points count alike here: that is how benchmarks/label_map_tube_ab.py measured it)
+        out, summary["tube_patches"] = _onto_tube_patches(out, faces, pts, config.label_map_tube, tree)
     if faces is not None and smoothing_time_mm2 > 0 and config.smoothing_bias_factor > 0:
         # the patches follow points on a smoothed surface: its inward offset is taken off
         out, summary["smoothing_bias"] = restore_smoothing_bias(out, faces, smoothing_time_mm2, config.smoothing_bias_factor)
     return out, summary
 
 
-def _onto_tube_patches(vertices_mm: np.ndarray, faces: np.ndarray, points_mm: np.ndarray, config: RefineConfig,
+def _onto_tube_patches(vertices_mm: np.ndarray, faces: np.ndarray, points_mm: np.ndarray, config: TubePatchConfig,
                        tree: cKDTree) -> tuple[np.ndarray, dict]:
     """(V, 3) vertices (mm) of a mesh with (F, 3) faces moved onto tube-aligned quadrics of the (N, 3)
-    points (mm) (`tube_patches.project_onto_tube_patches` with config.tube_*), and a summary."""
+    points (mm) (`tube_patches.project_onto_tube_patches` under config), and a summary."""
     import trimesh
 
     from .tube_patches import project_onto_tube_patches
 
     normals = trimesh.Trimesh(vertices_mm, faces, process=False).vertex_normals
-    out, moved = project_onto_tube_patches(vertices_mm, normals, points_mm, config.tube_along_mm,
-                                           config.tube_across_mm, k=config.tube_neighbours, tree=tree)
+    out, moved = project_onto_tube_patches(vertices_mm, normals, points_mm, config.along_mm, config.across_mm,
+                                           k=config.neighbours, max_move_mm=config.max_move_mm, tree=tree,
+                                           max_axis_spread=config.max_axis_spread)
     shift = np.linalg.norm(out - vertices_mm, axis=1)
-    return out, {"along_mm": config.tube_along_mm, "across_mm": config.tube_across_mm, **_moved_summary(shift, moved)}
+    return out, {"along_mm": config.along_mm, "across_mm": config.across_mm, **_moved_summary(shift, moved)}
 
 
 def _moved_summary(shift_mm: np.ndarray, moved: np.ndarray) -> dict:

@@ -29,12 +29,15 @@ AXIS_RADIUS_MM = 3.6
 
 
 def tube_axes(vertices_mm: np.ndarray, normals: np.ndarray, radius_mm: float = AXIS_RADIUS_MM,
-              max_neighbours: int = 256) -> np.ndarray:
-    """(V, 3) vertices (mm) and their (V, 3) unit normals -> (V, 3) unit tube axes: at each vertex
-    the least eigenvector of its neighbours' normal scatter sum(n n^T), projected into the vertex's
-    tangent plane. The neighbours: as many nearest vertices as lie within radius_mm of a vertex
-    (the median over a sample of vertices; 16 to max_neighbours), so that bumps smaller than that
-    do not set the axis whatever the mesh's resolution."""
+              max_neighbours: int = 256) -> tuple[np.ndarray, np.ndarray]:
+    """(V, 3) vertices (mm) and their (V, 3) unit normals -> ((V, 3) unit tube axes, (V,) axis
+    spread): at each vertex the least eigenvector of its neighbours' normal scatter sum(n n^T),
+    projected into the vertex's tangent plane, and that least eigenvalue over the neighbour count
+    (the mean squared normal component along the axis: ~0 on a tube or a plate, larger where
+    the surface bends both ways, e.g. a rib's end or a junction of a cartilage with the sternum).
+    The neighbours: as many nearest vertices as lie within radius_mm of a vertex (the median over
+    a sample of vertices; 16 to max_neighbours), so that bumps smaller than that do not set the
+    axis whatever the mesh's resolution."""
     v = np.asarray(vertices_mm, dtype=np.float64)
     n = np.asarray(normals, dtype=np.float64)
     tree = cKDTree(v)
@@ -42,9 +45,10 @@ def tube_axes(vertices_mm: np.ndarray, normals: np.ndarray, radius_mm: float = A
     k = int(np.clip(np.median(tree.query_ball_point(sample, radius_mm, return_length=True)), 16, max_neighbours))
     _, nn = tree.query(v, k=min(k, len(v)), workers=-1)
     nb = n[nn]
-    axis = np.linalg.eigh(np.matmul(nb.transpose(0, 2, 1), nb))[1][:, :, 0]
+    eigenvalues, eigenvectors = np.linalg.eigh(np.matmul(nb.transpose(0, 2, 1), nb))
+    axis = eigenvectors[:, :, 0]
     axis -= (axis * n).sum(1, keepdims=True) * n
-    return axis / np.maximum(np.linalg.norm(axis, axis=1, keepdims=True), 1e-12)
+    return axis / np.maximum(np.linalg.norm(axis, axis=1, keepdims=True), 1e-12), eigenvalues[:, 0] / nn.shape[1]
 
 
 @njit(parallel=True, cache=True)
@@ -94,22 +98,28 @@ def _tube_heights(vertices, normals, axes, points, neighbours, along, across, ba
 
 def project_onto_tube_patches(vertices_mm: np.ndarray, normals: np.ndarray, points_mm: np.ndarray,
                               along_mm: float, across_mm: float, k: int = 160, band_mm: float = 2.5,
-                              max_move_mm: float = 2.0, tree: cKDTree | None = None) -> tuple[np.ndarray, np.ndarray]:
+                              max_move_mm: float = 2.0, tree: cKDTree | None = None,
+                              max_axis_spread: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(V, 3) vertices (mm) with (V, 3) unit normals, (N, 3) input points (mm) -> ((V, 3) vertices
     moved along their normals onto their tube-aligned quadric of the points, (V,) bool: which
     moved). A patch holds the vertex's k nearest points within band_mm of its tangent plane (not
     the far wall of a rib), weighted exp(-(a/along_mm)^2 - (b/across_mm)^2) (a along the tube axis,
     b across it); a vertex stays where its patch weighs less than MIN_PATCH_WEIGHT or the move would
-    exceed max_move_mm. tree: a kd-tree of points_mm to reuse."""
+    exceed max_move_mm. tree: a kd-tree of points_mm to reuse.
+    max_axis_spread: where given, a vertex whose `tube_axes` spread is above it is not a tube's
+    and stays; from half of it up the move fades out linearly (no seam where the tube ends)."""
     v = np.ascontiguousarray(vertices_mm, dtype=np.float64)
     n = np.ascontiguousarray(normals, dtype=np.float64)
     pts = np.ascontiguousarray(points_mm, dtype=np.float64)
     if len(v) == 0 or len(pts) == 0:
         return v.copy(), np.zeros(len(v), dtype=bool)
-    axes = np.ascontiguousarray(tube_axes(v, n))
+    axes, spread = tube_axes(v, n)
+    axes = np.ascontiguousarray(axes)
     tree = tree if tree is not None else cKDTree(pts)
     _, nn = tree.query(v, k=min(k, len(pts)), workers=-1)
     nn = np.ascontiguousarray(nn.reshape(len(v), -1), dtype=np.int64)
     heights = _tube_heights(v, n, axes, pts, nn, float(along_mm), float(across_mm), float(band_mm),
                             MIN_PATCH_WEIGHT, float(max_move_mm))
+    if max_axis_spread is not None:
+        heights *= np.clip(2.0 - 2.0 * spread / max_axis_spread, 0.0, 1.0)
     return v + heights[:, None] * n, heights != 0.0

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
-from ribpull_core.config import RefineConfig
+from ribpull_core.config import RefineConfig, TubePatchConfig
 from ribpull_core.refine import plan_refinement, refine_vertices
 from ribpull_core.tube_patches import project_onto_tube_patches, tube_axes
 
@@ -44,10 +44,24 @@ def _radial_rms_mm(vertices: np.ndarray) -> float:
 
 def test_tube_axes_follow_a_cylinders_axis():
     mesh = _tube_mesh(0.0)
-    axes = tube_axes(mesh.vertices, mesh.vertex_normals)
+    axes, spread = tube_axes(mesh.vertices, mesh.vertex_normals)
     mid = (mesh.vertices[:, 2] > 5.0) & (mesh.vertices[:, 2] < LENGTH_MM - 5.0)
     assert np.all(np.abs(axes[mid, 2]) > 0.99)
     assert np.allclose(np.linalg.norm(axes, axis=1), 1.0)
+    # a cylinder's normals do not vary along its axis; a 4 mm sphere's (bent both ways) do: ~0.09
+    sphere = trimesh.creation.icosphere(4, radius=4.0)
+    assert spread[mid].max() < 1e-3
+    assert tube_axes(sphere.vertices, sphere.vertex_normals)[1].min() > 0.05
+
+
+def test_vertices_bent_both_ways_stay_under_max_axis_spread():
+    sphere = trimesh.creation.icosphere(4, radius=4.0)
+    points = sphere.vertices * 1.05  # 0.2 mm outside
+    free, moved = project_onto_tube_patches(sphere.vertices, sphere.vertex_normals, points, 10.0, 2.0)
+    held, held_moved = project_onto_tube_patches(sphere.vertices, sphere.vertex_normals, points, 10.0, 2.0,
+                                                 max_axis_spread=0.04)
+    assert moved.mean() > 0.9 and np.abs(free - sphere.vertices).max() > 0.05
+    assert not held_moved.any() and np.array_equal(held, sphere.vertices)
 
 
 def test_long_patches_take_off_more_noise_than_round_ones_of_the_same_width():
@@ -79,6 +93,53 @@ def test_a_too_noisy_input_gets_the_flow_then_the_tube_patches_and_says_so():
     out, summary = refine_vertices(mesh.vertices, points, RefineConfig(), plan, faces=mesh.faces)
     assert "noise_flow" in summary and summary["tube_patches"]["moved_fraction"] > 0.9
     assert summary["tube_patches"]["mean_shift_mm"] > 0.05
-    off, summary_off = refine_vertices(mesh.vertices, points, RefineConfig(tube_along_mm=0.0), plan, faces=mesh.faces)
+    off, summary_off = refine_vertices(mesh.vertices, points, RefineConfig(tube=TubePatchConfig(along_mm=0.0)), plan, faces=mesh.faces)
     assert "tube_patches" not in summary_off and "noise_flow" in summary_off
     assert not np.allclose(out, off)
+
+
+def _tilted_rod_label_map(radius_mm: float, length_mm: float, voxel_mm: float, axis: np.ndarray):
+    """A partial-volume label map of a rod (a voxel is set when more than half of its 5^3
+    sub-samples are inside) whose axis runs obliquely through the voxel grid, as the NIfTI loader
+    gives it: a PointCloud of its voxel centres, mm."""
+    from ribpull_core.pointcloud import PointCloud
+
+    n = np.ceil((np.abs(axis) * length_mm + 2 * radius_mm) / voxel_mm).astype(int) + 8
+    affine = np.diag([voxel_mm, voxel_mm, voxel_mm, 1.0])
+    affine[:3, 3] = -0.5 * (n - 1) * voxel_mm
+    ijk = np.stack(np.meshgrid(*[np.arange(k) for k in n], indexing="ij"), -1).reshape(-1, 3)
+    centres = ijk * voxel_mm + affine[:3, 3]
+    inside = np.zeros(len(centres))
+    sub = (np.arange(5) - 2) / 5.0 * voxel_mm
+    for offset in np.stack(np.meshgrid(sub, sub, sub, indexing="ij"), -1).reshape(-1, 3):
+        radial, along = _rod_coordinates(centres + offset, axis)
+        inside += (radial < radius_mm) & (np.abs(along) < length_mm / 2)
+    voxels = ijk[inside > 0.5 * 125]
+    return PointCloud(points=voxels * voxel_mm + affine[:3, 3], labels=np.ones(len(voxels)), nifti_affine=affine,
+                      nifti_shape=tuple(int(k) for k in n))
+
+
+def _rod_coordinates(points: np.ndarray, axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3) points (mm) -> ((N,) distance from the axis through the origin, (N,) position along it), mm."""
+    along = points @ axis
+    return np.linalg.norm(points - along[:, None] * axis, axis=1), along
+
+
+def test_a_label_maps_staircase_along_a_rod_is_averaged_by_the_tube_patches():
+    from ribpull_core.pointcloud import mask_boundary_cloud
+
+    radius, length = 4.0, 48.0
+    axis = np.array([1.0, 0.35, 0.2]) / np.linalg.norm([1.0, 0.35, 0.2])
+    cloud = mask_boundary_cloud(_tilted_rod_label_map(radius, length, 1.5, axis), subvoxel_sigma_mm=0.9)
+    mesh = trimesh.creation.cylinder(radius=radius - 0.15, height=length, sections=96).subdivide_to_size(0.8)
+    mesh.apply_transform(trimesh.geometry.align_vectors([0.0, 0.0, 1.0], axis))
+    errors = {}
+    for name, config in (("on", RefineConfig()), ("off", RefineConfig(label_map_tube=TubePatchConfig(along_mm=0.0)))):
+        out, summary = refine_vertices(mesh.vertices, cloud.points, config, faces=mesh.faces,
+                                       smoothing_time_mm2=cloud.boundary_smoothing_mm2)
+        radial, along = _rod_coordinates(out, axis)
+        side = (np.abs(along) < length / 2 - 8.0) & (radial > 1.0)  # the wall, away from the flat ends
+        errors[name] = float(np.sqrt(np.mean((radial[side] - radius) ** 2)))
+        assert ("tube_patches" in summary) == (name == "on"), summary
+    # measured: RMS off the true wall 0.134 mm with the round patches alone, 0.100 with the tube ones
+    assert errors["on"] < 0.85 * errors["off"], errors
