@@ -31,7 +31,8 @@ class TubePatchConfig:
     """Patches long along a rib and narrow across it (`tube_patches.project_onto_tube_patches`).
 
     along_mm, across_mm: the Gaussian weight's scales along the tube's axis and across it (mm;
-    along_mm 0 disables); neighbours: at most this many points per patch; max_move_mm: a vertex
+    along_mm 0 disables); neighbours: a patch's ball holds about this many points (its radius:
+    the median distance from the vertices to their neighbours-th nearest point); max_move_mm: a vertex
     whose patch is farther than this (mm) stays; max_axis_spread: a vertex where the surface bends
     both ways (`tube_patches.tube_axes` spread above it) stays (None: no such limit).
     """
@@ -118,7 +119,8 @@ class RefineConfig:
     mm); the phantom's ribs are 5.5 x 3.5 mm ellipses.
 
     label_map_tube: a label map's refined mesh, before the smoothing bias is restored, is projected
-    onto tube patches of its boundary points (terrace-weighted like the isotropic ones), which
+    onto tube patches of its boundary points (all alike, without the isotropic patches' terrace
+    weights), which
     average the voxel staircase over a rib's length; short moves only (max_move_mm) and only where
     the surface is a tube's (max_axis_spread), since where it bends both ways (rib ends, the
     cartilages' junctions with the sternum) the patches cut the corner (benchmarks/label_map_tube_ab.py).

@@ -28,36 +28,99 @@ MIN_PATCH_WEIGHT = 6.0
 AXIS_RADIUS_MM = 3.6
 
 
+def cell_grid(points_mm: np.ndarray, cell_mm: float, max_cells: int = 1 << 24):
+    """A uniform grid of cubic cells over (N, 3) points (mm) for radius searches in the compiled
+    kernels: (lo (3,) mm, cell (mm), dims (3,), order (N,) point indices sorted by cell, starts
+    (prod(dims) + 1,): cell c's points are order[starts[c]:starts[c + 1]]). The cell grows past
+    cell_mm where the box would need more than max_cells cells (a far outlier)."""
+    pts = np.asarray(points_mm, dtype=np.float64)
+    lo = pts.min(0) - 1e-9
+    extent = pts.max(0) - lo
+    cell = float(cell_mm)
+    while True:
+        dims = np.maximum(np.ceil(extent / cell).astype(np.int64), 1)
+        if int(np.prod(dims)) <= max_cells:
+            break
+        cell *= 1.26
+    ijk = np.minimum(((pts - lo) / cell).astype(np.int64), dims - 1)
+    key = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
+    order = np.argsort(key, kind="stable")
+    starts = np.searchsorted(key[order], np.arange(int(np.prod(dims)) + 1))
+    return lo, cell, dims, order.astype(np.int64), starts.astype(np.int64)
+
+
+def _typical_radius(queries: np.ndarray, tree: cKDTree, k: int, n_sample: int = 512) -> float:
+    """The median, over up to n_sample of the (Q, 3) queries, of the distance to their k-th nearest
+    point of `tree` (mm): the radius that holds about k points there."""
+    sample = queries[np.linspace(0, len(queries) - 1, min(len(queries), n_sample)).astype(np.int64)]
+    d, _ = tree.query(sample, k=[min(k, tree.n)], workers=-1)
+    return float(np.median(d[np.isfinite(d)])) if np.isfinite(d).any() else 0.0
+
+
+@njit(parallel=True, cache=True)
+def _normal_scatter(vertices, normals, lo, cell, dims, order, starts, radius):  # pragma: no cover - compiled
+    """((V, 3, 3) sum of n n^T over the vertices within `radius` of each vertex (itself included),
+    (V,) how many). The cell grid (`cell_grid`) is of the vertices themselves."""
+    n_vert = vertices.shape[0]
+    scatter = np.zeros((n_vert, 3, 3))
+    count = np.zeros(n_vert)
+    reach = int(np.ceil(radius / cell))
+    r2 = radius * radius
+    for i in prange(n_vert):
+        ci = int(np.floor((vertices[i, 0] - lo[0]) / cell))
+        cj = int(np.floor((vertices[i, 1] - lo[1]) / cell))
+        ck = int(np.floor((vertices[i, 2] - lo[2]) / cell))
+        k0 = min(max(ck - reach, 0), dims[2])  # a vertex beyond the grid reads no cell
+        k1 = max(min(ck + reach + 1, dims[2]), k0)
+        for a in range(max(ci - reach, 0), min(ci + reach + 1, dims[0])):
+            for b in range(max(cj - reach, 0), min(cj + reach + 1, dims[1])):
+                base = (a * dims[1] + b) * dims[2]
+                for t in range(starts[base + k0], starts[base + k1]):
+                    p = order[t]
+                    dx = vertices[p, 0] - vertices[i, 0]
+                    dy = vertices[p, 1] - vertices[i, 1]
+                    dz = vertices[p, 2] - vertices[i, 2]
+                    if dx * dx + dy * dy + dz * dz > r2:
+                        continue
+                    for u in range(3):
+                        for w in range(3):
+                            scatter[i, u, w] += normals[p, u] * normals[p, w]
+                    count[i] += 1.0
+    return scatter, count
+
+
 def tube_axes(vertices_mm: np.ndarray, normals: np.ndarray, radius_mm: float = AXIS_RADIUS_MM,
-              max_neighbours: int = 256) -> tuple[np.ndarray, np.ndarray]:
+              min_neighbours: int = 16) -> tuple[np.ndarray, np.ndarray]:
     """(V, 3) vertices (mm) and their (V, 3) unit normals -> ((V, 3) unit tube axes, (V,) axis
     spread): at each vertex the least eigenvector of its neighbours' normal scatter sum(n n^T),
     projected into the vertex's tangent plane, and that least eigenvalue over the neighbour count
     (the mean squared normal component along the axis: ~0 on a tube or a plate, larger where
     the surface bends both ways, e.g. a rib's end or a junction of a cartilage with the sternum).
-    The neighbours: as many nearest vertices as lie within radius_mm of a vertex (the median over
-    a sample of vertices; 16 to max_neighbours), so that bumps smaller than that do not set the
-    axis whatever the mesh's resolution."""
-    v = np.asarray(vertices_mm, dtype=np.float64)
-    n = np.asarray(normals, dtype=np.float64)
-    tree = cKDTree(v)
-    sample = v[np.linspace(0, len(v) - 1, min(len(v), 256)).astype(np.int64)]
-    k = int(np.clip(np.median(tree.query_ball_point(sample, radius_mm, return_length=True)), 16, max_neighbours))
-    _, nn = tree.query(v, k=min(k, len(v)), workers=-1)
-    nb = n[nn]
-    eigenvalues, eigenvectors = np.linalg.eigh(np.matmul(nb.transpose(0, 2, 1), nb))
+    The neighbours: the vertices within radius_mm of a vertex, so that bumps smaller than that do
+    not set the axis whatever the mesh's resolution; on a mesh so coarse that radius_mm holds fewer
+    than min_neighbours vertices, the radius that holds that many (the median over a sample)."""
+    v = np.ascontiguousarray(vertices_mm, dtype=np.float64)
+    n = np.ascontiguousarray(normals, dtype=np.float64)
+    if len(v) == 0:
+        return np.zeros((0, 3)), np.zeros(0)
+    radius = max(float(radius_mm), _typical_radius(v, cKDTree(v), min_neighbours))
+    scatter, count = _normal_scatter(v, n, *cell_grid(v, radius), radius)
+    eigenvalues, eigenvectors = np.linalg.eigh(scatter)
     axis = eigenvectors[:, :, 0]
     axis -= (axis * n).sum(1, keepdims=True) * n
-    return axis / np.maximum(np.linalg.norm(axis, axis=1, keepdims=True), 1e-12), eigenvalues[:, 0] / nn.shape[1]
+    return axis / np.maximum(np.linalg.norm(axis, axis=1, keepdims=True), 1e-12), eigenvalues[:, 0] / np.maximum(count, 1.0)
 
 
 @njit(parallel=True, cache=True)
-def _tube_heights(vertices, normals, axes, points, neighbours, along, across, band, min_weight,
-                  max_move):  # pragma: no cover - compiled
+def _tube_heights(vertices, normals, axes, points, lo, cell, dims, order, starts, radius, along, across, band,
+                  min_weight, max_move):  # pragma: no cover - compiled
     """(V,) height of each vertex's weighted quadric fit above it along its normal (0 where the
-    patch is too light or the move exceeds max_move). neighbours: (V, k) point indices."""
-    n_vert, k = neighbours.shape
+    patch is too light or the move exceeds max_move). The patch: the points within `radius` of
+    the vertex (the points' `cell_grid`: lo, cell, dims, order, starts)."""
+    n_vert = vertices.shape[0]
     heights = np.zeros(n_vert)
+    reach = int(np.ceil(radius / cell))
+    r2 = radius * radius
     for i in prange(n_vert):
         nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
         ax, ay, az = axes[i, 0], axes[i, 1], axes[i, 2]
@@ -66,26 +129,36 @@ def _tube_heights(vertices, normals, axes, points, neighbours, along, across, ba
         atb = np.zeros(6)
         row = np.empty(6)
         total = 0.0
-        for j in range(k):
-            p = neighbours[i, j]
-            dx = points[p, 0] - vertices[i, 0]
-            dy = points[p, 1] - vertices[i, 1]
-            dz = points[p, 2] - vertices[i, 2]
-            h = dx * nx + dy * ny + dz * nz
-            if abs(h) >= band:
-                continue
-            a = (dx * ax + dy * ay + dz * az) / along
-            b = (dx * bx + dy * by + dz * bz) / across
-            w = np.exp(-(a * a + b * b))
-            if w < 1e-6:
-                continue
-            total += w
-            # the height field in units of (along, across): the same fit, better conditioned
-            row[0], row[1], row[2], row[3], row[4], row[5] = 1.0, a, b, a * a, a * b, b * b
-            for r in range(6):
-                atb[r] += w * row[r] * h
-                for c in range(6):
-                    ata[r, c] += w * row[r] * row[c]
+        ci = int(np.floor((vertices[i, 0] - lo[0]) / cell))
+        cj = int(np.floor((vertices[i, 1] - lo[1]) / cell))
+        ck = int(np.floor((vertices[i, 2] - lo[2]) / cell))
+        k0 = min(max(ck - reach, 0), dims[2])  # a vertex beyond the grid reads no cell
+        k1 = max(min(ck + reach + 1, dims[2]), k0)
+        for ca in range(max(ci - reach, 0), min(ci + reach + 1, dims[0])):
+            for cb in range(max(cj - reach, 0), min(cj + reach + 1, dims[1])):
+                base = (ca * dims[1] + cb) * dims[2]
+                for t in range(starts[base + k0], starts[base + k1]):
+                    p = order[t]
+                    dx = points[p, 0] - vertices[i, 0]
+                    dy = points[p, 1] - vertices[i, 1]
+                    dz = points[p, 2] - vertices[i, 2]
+                    if dx * dx + dy * dy + dz * dz > r2:
+                        continue
+                    h = dx * nx + dy * ny + dz * nz
+                    if abs(h) >= band:
+                        continue
+                    a = (dx * ax + dy * ay + dz * az) / along
+                    b = (dx * bx + dy * by + dz * bz) / across
+                    w = np.exp(-(a * a + b * b))
+                    if w < 1e-6:
+                        continue
+                    total += w
+                    # the height field in units of (along, across): the same fit, better conditioned
+                    row[0], row[1], row[2], row[3], row[4], row[5] = 1.0, a, b, a * a, a * b, b * b
+                    for r in range(6):
+                        atb[r] += w * row[r] * h
+                        for c in range(6):
+                            ata[r, c] += w * row[r] * row[c]
         if total < min_weight:
             continue
         for r in range(6):
@@ -102,8 +175,9 @@ def project_onto_tube_patches(vertices_mm: np.ndarray, normals: np.ndarray, poin
                               max_axis_spread: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(V, 3) vertices (mm) with (V, 3) unit normals, (N, 3) input points (mm) -> ((V, 3) vertices
     moved along their normals onto their tube-aligned quadric of the points, (V,) bool: which
-    moved). A patch holds the vertex's k nearest points within band_mm of its tangent plane (not
-    the far wall of a rib), weighted exp(-(a/along_mm)^2 - (b/across_mm)^2) (a along the tube axis,
+    moved). A patch holds the points within band_mm of the vertex's tangent plane (not the far wall
+    of a rib) inside the ball that holds about k points (its radius: the median over the vertices
+    of their k-th nearest point's distance), weighted exp(-(a/along_mm)^2 - (b/across_mm)^2) (a along the tube axis,
     b across it); a vertex stays where its patch weighs less than MIN_PATCH_WEIGHT or the move would
     exceed max_move_mm. tree: a kd-tree of points_mm to reuse.
     max_axis_spread: where given, a vertex whose `tube_axes` spread is above it is not a tube's
@@ -114,12 +188,18 @@ def project_onto_tube_patches(vertices_mm: np.ndarray, normals: np.ndarray, poin
     if len(v) == 0 or len(pts) == 0:
         return v.copy(), np.zeros(len(v), dtype=bool)
     axes, spread = tube_axes(v, n)
-    axes = np.ascontiguousarray(axes)
-    tree = tree if tree is not None else cKDTree(pts)
-    _, nn = tree.query(v, k=min(k, len(pts)), workers=-1)
-    nn = np.ascontiguousarray(nn.reshape(len(v), -1), dtype=np.int64)
-    heights = _tube_heights(v, n, axes, pts, nn, float(along_mm), float(across_mm), float(band_mm),
-                            MIN_PATCH_WEIGHT, float(max_move_mm))
-    if max_axis_spread is not None:
-        heights *= np.clip(2.0 - 2.0 * spread / max_axis_spread, 0.0, 1.0)
+    weight = np.ones(len(v)) if max_axis_spread is None else np.clip(2.0 - 2.0 * spread / max_axis_spread, 0.0, 1.0)
+    active = np.flatnonzero(weight > 0)  # a vertex the gate holds still needs no patch
+    heights = np.zeros(len(v))
+    if len(active):
+        tree = tree if tree is not None else cKDTree(pts)
+        # the ball that holds about k points where the mesh lies (not k nearest per vertex: a radius
+        # search on a cell grid costs a fraction of a kd-tree's k-nearest query)
+        radius = _typical_radius(v[active], tree, k)
+        if radius > 0:
+            heights[active] = _tube_heights(np.ascontiguousarray(v[active]), np.ascontiguousarray(n[active]),
+                                            np.ascontiguousarray(axes[active]), pts, *cell_grid(pts, radius), radius,
+                                            float(along_mm), float(across_mm), float(band_mm), MIN_PATCH_WEIGHT,
+                                            float(max_move_mm))
+    heights *= weight
     return v + heights[:, None] * n, heights != 0.0
