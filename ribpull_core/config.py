@@ -186,10 +186,13 @@ class LabelMapConfig:
     of this std (mm), crosses 0.5 (a sub-voxel boundary instead of the staircase).
     band_voxels: voxel centres within this many voxels of the boundary become known-occupancy
     samples (inside / outside) for methods that use them; 0 disables.
+    between_labels: faces between voxels of two different labels are boundary points of both
+    structures too (`pointcloud.mask_boundary_cloud`).
     """
 
     boundary_sigma_mm: float = 0.0
     band_voxels: float = 0.0
+    between_labels: bool = False
 
 
 @dataclass

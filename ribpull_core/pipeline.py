@@ -279,7 +279,8 @@ def run_pipeline(
                 lm = fit_config.label_map
                 if lm.band_voxels > 0:  # voxel centres near the boundary: occupancy the map states
                     cloud = mask_band_samples(cloud, width_voxels=lm.band_voxels, seed=options.seed)
-                cloud = mask_boundary_cloud(cloud, seed=options.seed, subvoxel_sigma_mm=lm.boundary_sigma_mm)
+                cloud = mask_boundary_cloud(cloud, seed=options.seed, subvoxel_sigma_mm=lm.boundary_sigma_mm,
+                                            between_labels=lm.between_labels)
             reference, reference_name = _reference_for_metrics(options, cloud)
         with timed("fit"), ThreadPoolExecutor(max_workers=1, thread_name_prefix="ribpull-patches") as pool:
             refine_plan = _plan_refinement(cloud, fit_config, options)

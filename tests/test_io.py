@@ -598,6 +598,11 @@ def test_mask_boundary_cloud_puts_points_on_the_voxel_faces():
     assert set(b.labels.tolist()) == {7, 8} and b.label_names == {7: "a", 8: "b"} and b.source_format == "nifti"
     assert np.allclose(b.nifti_affine, aff) and b.nifti_shape == (20, 20, 20)
     assert len(mask_boundary_cloud(cloud, max_points=10)) == 10
+    # between labels: the 9 faces between the x = 5 layer (label 8) and the rest (7), once per side
+    walls = mask_boundary_cloud(cloud, between_labels=True)
+    shared = np.isclose(walls.points[:, 0], 21.0)
+    assert len(walls) == 72 and shared.sum() == 18
+    assert sorted(walls.labels[shared].tolist()) == [7] * 9 + [8] * 9
     with pytest.raises(ValueError):
         mask_boundary_cloud(PointCloud(points=np.zeros((3, 3))))
 

@@ -56,10 +56,10 @@ class RunPreset:
 #: SDF has 64 voxels along the longest side (~5 mm on a ribcage, as coarse as its mesh): at 128 the
 #: volume was ~40% of a tiny smoke job (3.8 of 9.6 s, 4k points, 10 iterations).
 RUN_PRESETS = {
-    "default": RunPreset("sparseocc", 256, LabelMapConfig(boundary_sigma_mm=LABEL_MAP_SIGMA_MM, band_voxels=2.0),
+    "default": RunPreset("sparseocc", 256, LabelMapConfig(boundary_sigma_mm=LABEL_MAP_SIGMA_MM, band_voxels=2.0, between_labels=True),
                          RefineConfig()),
     "paper": RunPreset("sparseocc", 256, LabelMapConfig(), None),
-    "smoke": RunPreset("sparseocc", 96, LabelMapConfig(boundary_sigma_mm=LABEL_MAP_SIGMA_MM, band_voxels=2.0),
+    "smoke": RunPreset("sparseocc", 96, LabelMapConfig(boundary_sigma_mm=LABEL_MAP_SIGMA_MM, band_voxels=2.0, between_labels=True),
                        RefineConfig(), sdf_cells=64),
 }
 
