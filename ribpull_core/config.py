@@ -125,6 +125,16 @@ class RefineConfig:
     the surface is a tube's (max_axis_spread), since where it bends both ways (rib ends, the
     cartilages' junctions with the sternum) the patches cut the corner (benchmarks/label_map_tube_ab.py).
 
+    label_map_radius_voxels: a label map's patches hold its boundary points within this many of its
+    largest voxel edges (instead of radius_mm): 2.5 mm on a 1.5 mm map, where a 4 mm patch spans
+    most of a thin cartilage's cross-section and pulls its edges inside (the sternum phantom's
+    worst spots), and 4.2 mm on a 0.75 x 0.75 x 2.5 mm map, whose 2.5 mm steps a smaller patch
+    does not average. 1M samples, CD-L1 / HD mm at radius 4 / 3 / 2.5 mm (/tmp harness over
+    benchmarks/abkit.py, 2026-12-06, mc_taubin beside): sternum 1.5 mm map 0.2530 / 1.38, 0.2523 /
+    1.23, 0.2535 / 1.11 (0.2852 / 1.21); 1.5 mm map 0.2320 / 0.92, 0.2326 / 0.98, 0.2337 / 0.89
+    (0.2672 / 1.03); 0.75 x 0.75 x 2.5 mm map 0.2371 / 1.15, 0.2419 / 1.19, 0.2501 / 1.18 (0.3096 /
+    1.33). None: radius_mm for label maps too.
+
     Chosen on the phantom (300k-sample CD-L1 of the refined mesh, mm): the best patch held ~20
     points at 60k points (4.0 mm) and ~13 at 20k (5.5 mm); patches wider than ~6 mm (10k points and
     fewer) made the 10k and 5k meshes worse (0.842 -> 0.945, 1.461 -> 1.637), and so did 1 mm noise
@@ -134,6 +144,7 @@ class RefineConfig:
     """
 
     radius_mm: float = 4.0
+    label_map_radius_voxels: float | None = 5.0 / 3.0
     min_neighbours: int = 13
     max_neighbours: int = 32
     max_radius_mm: float = 6.0

@@ -375,15 +375,21 @@ def _plan_refinement(cloud, fit_config, options: PipelineOptions):
     shortens the fit to the refinement's fit_iterations (never lengthens it) unless the options name
     an iteration count or another method (fit_config is changed in place). A point cloud of more than
     refine.dense_points points is planned with dense_max_neighbours and dense_fit_iterations, and is
-    meshed at dense_mesh_resolution cells unless the options name a resolution."""
+    meshed at dense_mesh_resolution cells unless the options name a resolution. A label map's
+    patches reach refine.label_map_radius_voxels of its largest voxel edge."""
     from .methods import with_iterations
+    from .pointcloud import voxel_spacing_mm
     from .refine import plan_refinement
 
     config = fit_config.refine
     if config is None:
         return None
     dense = cloud.nifti_affine is None and len(cloud.points) > config.dense_points
-    plan = plan_refinement(cloud.points, replace(config, max_neighbours=config.dense_max_neighbours) if dense else config)
+    if dense:
+        config = replace(config, max_neighbours=config.dense_max_neighbours)
+    elif cloud.nifti_affine is not None and config.label_map_radius_voxels:
+        config = replace(config, radius_mm=config.label_map_radius_voxels * float(voxel_spacing_mm(cloud).max()))
+    plan = plan_refinement(cloud.points, config)
     planned = fit_config.method_config.schedule.iterations
     # the shorter schedule was measured for the preset's own method: another method keeps its own
     iterations = config.dense_fit_iterations if dense else config.fit_iterations
