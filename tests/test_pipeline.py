@@ -219,5 +219,14 @@ def test_refined_fit_length_follows_the_point_count_and_the_input_kind():
     # ... unless the user names a resolution (build_fit_config applied it already)
     assert planned(sphere, dense_points=10_000, resolution=preset_resolution)[2] == preset_resolution
     label_map = dataclasses.replace(sphere, nifti_affine=np.eye(4))
-    # a label map's boundary points do not count as dense
-    assert planned(label_map, dense_points=10_000) == (400, refine.max_neighbours, preset_resolution)
+    # a label map's boundary points do not count as dense; its patches reach 5/3 of a voxel edge
+    # (here 1 mm voxels: 1.7 mm, fewer points than the 4 mm of a point cloud's)
+    iterations, neighbours, resolution = planned(label_map, dense_points=10_000)
+    assert (iterations, resolution) == (400, preset_resolution)
+    assert refine.min_neighbours <= neighbours < refine.max_neighbours
+    from scipy.spatial import cKDTree
+
+    from ribpull_core.refine import patch_size
+    probe = np.arange(0, len(label_map.points), max(1, len(label_map.points) // 4000))
+    at_radius = dataclasses.replace(refine, radius_mm=refine.label_map_radius_voxels * 1.0)
+    assert neighbours == patch_size(label_map.points, at_radius, cKDTree(label_map.points), probe)[0]
