@@ -123,13 +123,14 @@ def mask_boundary_cloud(cloud: PointCloud, max_points: int = 120_000, seed: int 
         spacing = voxel_spacing_mm(cloud)
         blurs = _structure_blurs(labels, subvoxel_sigma_mm / spacing)
         smoothing_mm2 = boundary_smoothing_time_mm2(subvoxel_sigma_mm, spacing)
+    # a face bounds a structure where its neighbour differs: in being selected, or (between_labels)
+    # in its label, which is 0 for an unselected voxel
+    key = labels if between_labels else inside
     centres, face_labels, face_axes = [], [], []
     for axis in range(3):
         for step in (1, -1):
-            neighbour_outside = ~np.roll(inside, -step, axis=axis)  # the padding keeps the roll from wrapping
-            if between_labels:
-                neighbour_outside |= np.roll(labels, -step, axis=axis) != labels
-            faces = np.argwhere(inside & neighbour_outside)
+            neighbour_differs = np.roll(key, -step, axis=axis) != key  # the padding keeps the roll from wrapping
+            faces = np.argwhere(inside & neighbour_differs)
             lab = labels[tuple(faces.T)]
             offset = np.zeros((len(faces), 3))
             offset[:, axis] = 0.5 * step
