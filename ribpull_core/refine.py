@@ -25,7 +25,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import splu
 from scipy.spatial import cKDTree
 
-from .config import RefineConfig, TubePatchConfig
+from .config import RefineConfig, SectionQuadricConfig, TubePatchConfig
 from .curvature_bias import normal_noise_mm, remove_noise_bias, restore_smoothing_bias
 from .pointcloud import sampling_gap
 from .quadrics import LocalQuadrics, fit_local_quadrics, pca_normals, project_onto_blended_quadrics
@@ -154,16 +154,20 @@ def refine_vertices(vertices_mm: np.ndarray, points_mm: np.ndarray, config: Refi
     if len(verts) == 0:
         return verts, plan.summary()
     if not plan.applies:
-        if plan.too_noisy and faces is not None and config.noise_flow_factor > 0:
+        summary = plan.summary()
+        if faces is None:
+            return verts, summary
+        if plan.too_noisy and config.noise_flow_factor > 0:
             # noise the patches cannot average: the offset it puts on a curved fit is taken off
             sigma = normal_noise_mm(plan.patch_residual_mm, plan.neighbours)
-            verts, flow = remove_noise_bias(verts, faces, sigma, config.noise_flow_factor)
-            summary = {**plan.summary(), "noise_flow": flow}
+            verts, summary["noise_flow"] = remove_noise_bias(verts, faces, sigma, config.noise_flow_factor)
             if config.tube.along_mm > 0:
                 # then the noise a narrow isotropic patch cannot average, over patches long along the rib
                 verts, summary["tube_patches"] = _onto_tube_patches(verts, faces, pts, config.tube, tree)
-            return verts, summary
-        return verts, plan.summary()
+        if config.section.along_mm > 0:
+            # then over windows that hold the rib's whole cross-section (too noisy or too sparse input)
+            verts, summary["section_quadrics"] = _onto_section_quadrics(verts, faces, pts, config.section)
+        return verts, summary
     gap = sampling_gap(pts, k=1, tree=tree)  # median nearest-neighbour distance
     patches = patches if patches is not None else fit_local_quadrics(pts, k=plan.neighbours, tree=tree,
                                                                      point_weights=point_weights)
@@ -199,6 +203,30 @@ def _onto_tube_patches(vertices_mm: np.ndarray, faces: np.ndarray, points_mm: np
                                            max_axis_spread=config.max_axis_spread)
     shift = np.linalg.norm(out - vertices_mm, axis=1)
     return out, {"along_mm": config.along_mm, "across_mm": config.across_mm, **_moved_summary(shift, moved)}
+
+
+def _onto_section_quadrics(vertices_mm: np.ndarray, faces: np.ndarray, points_mm: np.ndarray,
+                           config: SectionQuadricConfig) -> tuple[np.ndarray, dict]:
+    """(V, 3) vertices (mm) of a mesh with (F, 3) faces moved onto section quadrics of the (N, 3)
+    points (mm) (`section_quadrics.project_onto_section_quadrics` under config), with Taubin
+    smoothing before and after each pass, and a summary."""
+    import trimesh
+
+    from .section_quadrics import project_onto_section_quadrics
+
+    mesh = trimesh.Trimesh(np.array(vertices_mm, dtype=np.float64), faces, process=False)
+    moved = np.zeros(len(mesh.vertices), dtype=bool)
+    for _ in range(config.passes):
+        trimesh.smoothing.filter_taubin(mesh, lamb=0.5, nu=0.53, iterations=config.smoothing_iterations)
+        projected, moved = project_onto_section_quadrics(
+            mesh.vertices, mesh.vertex_normals, points_mm, config.along_mm, config.across_mm, config.centre_spacing_mm,
+            config.min_points, config.reweightings, config.robust_mm, config.max_move_mm)
+        mesh = trimesh.Trimesh(projected, faces, process=False)
+        trimesh.smoothing.filter_taubin(mesh, lamb=0.5, nu=0.53, iterations=config.smoothing_iterations)
+    out = np.asarray(mesh.vertices)
+    shift = np.linalg.norm(out - vertices_mm, axis=1)
+    return out, {"along_mm": config.along_mm, "across_mm": config.across_mm, "passes": config.passes,
+                 **_moved_summary(shift, moved)}
 
 
 def _moved_summary(shift_mm: np.ndarray, moved: np.ndarray) -> dict:
