@@ -55,11 +55,14 @@ class SectionQuadricConfig:
     weights of this scale on the points' distances to the quadric; max_move_mm: a vertex whose
     quadric is farther stays; smoothing_iterations: Taubin smoothing (lambda 0.5, nu -0.53) before
     and after each pass; passes: fit-and-project rounds.
-    1M samples, CD-L1 mm (/tmp harness on the `default` meshes, 2026-12-06, screened Poisson
-    0.572 / 0.868): 20k / 1 mm after the flow and tube patches 0.576 -> 0.488 (one pass; spacing
-    0 / 1.5 / 3.5 mm: 0.503 / 0.502 / 0.501 without the tube patches, 7.8 / 3.8 / 2.1 s);
-    smoothing 3 / 5 / 8 iterations 0.502 / 0.501 / 0.516); 10k / 1 mm 0.922 -> 0.796 (one pass),
-    0.784 (two).
+    Measured (benchmarks/section_quadrics_ab.py, 1M samples, CD-L1 mm, 2026-12-06; screened
+    Poisson / off / one pass / two passes): 10k points / 1 mm noise 0.868 / 0.922 / 0.796 / 0.779;
+    20k / 1 mm 0.572 / 0.576 / 0.488 / 0.487; 60k / 1 mm 0.449 / 0.410 / 0.346 / 0.353; 5k / 0, 0.3, 1
+    mm 1.550, 1.527, 1.757 / 0.832, 0.852, 1.261 / 0.638, 0.690, 1.179 / 0.617, 0.671, 1.164; 10k / 0,
+    0.3 mm 0.664, 0.683 / 0.486, 0.534 / 0.337, 0.375 / 0.334, 0.371. On the `default` meshes of 20k /
+    1 mm (/tmp harness): fits at every vertex / 1.5 / 2.5 / 3.5 mm apart 0.503 / 0.502 / 0.501 / 0.501
+    (7.8 / 3.8 / 2.1 / 2.1 s, without the tube patches); 3 / 5 / 8 smoothing iterations 0.502 /
+    0.501 / 0.516.
     """
 
     along_mm: float = 10.0
@@ -70,7 +73,7 @@ class SectionQuadricConfig:
     robust_mm: float = 2.0
     max_move_mm: float = 2.0
     smoothing_iterations: int = 5
-    passes: int = 1
+    passes: int = 2
 
 
 @dataclass
@@ -163,6 +166,10 @@ class RefineConfig:
     1.23, 0.2535 / 1.11 (0.2852 / 1.21); 1.5 mm map 0.2320 / 0.92, 0.2326 / 0.98, 0.2337 / 0.89
     (0.2672 / 1.03); 0.75 x 0.75 x 2.5 mm map 0.2371 / 1.15, 0.2419 / 1.19, 0.2501 / 1.18 (0.3096 /
     1.33). None: radius_mm for label maps too.
+
+    section: an input the round patches do not refine (too noisy: after the flow and the tube
+    patches; too sparse: as meshed) is then projected onto implicit quadrics of its points over
+    windows that hold a rib's whole cross-section (a SectionQuadricConfig; along_mm 0 disables).
 
     Chosen on the phantom (300k-sample CD-L1 of the refined mesh, mm): the best patch held ~20
     points at 60k points (4.0 mm) and ~13 at 20k (5.5 mm); patches wider than ~6 mm (10k points and

@@ -18,10 +18,9 @@ moves along its normal to the nearest root of its nearest centre's quadric, if t
 `max_move_mm`. Taubin smoothing before (the fit's frame needs steady normals) and after (the
 per-centre fits are independent, so their seams are noise) completes the step.
 
-Measured on the bench's phantom (1M samples, CD-L1 mm against screened Poisson on flood-fill
-normals; /tmp prototype on the `default` meshes, 2026-12-06): 20k points / 1 mm noise, the noise
-flow then this 0.505 (the flow and 14 x 2.5 mm tube patches: 0.576; Poisson 0.572); 10k / 1 mm
-(not refined before) 0.796 against 0.922 (Poisson 0.868).
+Measured on the bench's phantom (`config.SectionQuadricConfig`, benchmarks/section_quadrics_ab.py):
+CD-L1 at 10k points / 1 mm noise 0.922 -> 0.779 mm, at 20k / 1 mm 0.576 -> 0.487 (screened Poisson
+0.868, 0.572; 1M samples).
 
 Units: millimetres throughout.
 """

@@ -7,7 +7,7 @@ the refinement plan tells a too-noisy input from a too-sparse one."""
 import numpy as np
 import trimesh
 
-from ribpull_core.config import RefineConfig, TubePatchConfig
+from ribpull_core.config import RefineConfig, SectionQuadricConfig, TubePatchConfig
 from ribpull_core.curvature_bias import (
     cotangent_laplacian,
     mean_curvature_flow,
@@ -88,12 +88,14 @@ def test_the_flow_takes_the_noise_offset_off_a_surface_fitted_through_noisy_poin
     assert abs(left) < 0.3 * offset, (left, offset, summary)
     assert summary["sigma_mm"] == round(sigma, 4) and summary["mean_shift_mm"] > 0.6 * offset
     # the refinement (what the pipeline calls) applies that flow where its plan finds the input too noisy
-    # (and then the tube patches, tests/test_tube_patches.py: off here)
-    refined, refine_summary = refine_vertices(inflated.vertices, points, RefineConfig(tube=TubePatchConfig(along_mm=0.0)), plan,
-                                              faces=inflated.faces)
+    # (and then the tube patches, tests/test_tube_patches.py, and the section quadrics,
+    # tests/test_section_quadrics.py: both off here)
+    flow_only = RefineConfig(tube=TubePatchConfig(along_mm=0.0), section=SectionQuadricConfig(along_mm=0.0))
+    refined, refine_summary = refine_vertices(inflated.vertices, points, flow_only, plan, faces=inflated.faces)
     assert plan.too_noisy and refine_summary["noise_flow"] == summary, refine_summary
     assert np.allclose(refined, out)
-    for config, faces in ((RefineConfig(noise_flow_factor=0.0), inflated.faces), (RefineConfig(), None)):
+    no_flow = RefineConfig(noise_flow_factor=0.0, section=SectionQuadricConfig(along_mm=0.0))
+    for config, faces in ((no_flow, inflated.faces), (RefineConfig(), None)):
         unchanged, unflowed = refine_vertices(inflated.vertices, points, config, plan, faces=faces)
         assert np.array_equal(unchanged, inflated.vertices) and "noise_flow" not in unflowed
 
