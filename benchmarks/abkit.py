@@ -90,7 +90,7 @@ def case_arguments(doc: str, default_cases: tuple[str, ...]):
 
 def bench_case(spec: str, workdir: Path, seed: int = 0):
     """A `ribpull bench` phantom case (bench.plan.Case, files written under workdir) from a spec:
-    "POINTS:NOISE_MM", "sternum:POINTS:NOISE_MM", "mask:1.5" (partial-volume label map, 1.5 mm
+    "POINTS:NOISE_MM", "POINTS:NOISE_MM:OUTLIER_FRACTION", "sternum:POINTS:NOISE_MM", "mask:1.5" (partial-volume label map, 1.5 mm
     voxels), "mask:aniso" (0.75 x 0.75 x 2.5 mm) or "sternum:mask:1.5"."""
     from ribpull_core.bench.plan import phantom_case
 
@@ -99,7 +99,8 @@ def bench_case(spec: str, workdir: Path, seed: int = 0):
     if parts[0] == "mask":
         spacing = (0.75, 0.75, 2.5) if parts[1] == "aniso" else float(parts[1])
         return phantom_case(workdir, seed, 0, 0.0, mask=True, spacing_mm=spacing, partial_volume=True, sternum=sternum)
-    return phantom_case(workdir, seed, int(parts[0]), float(parts[1]), sternum=sternum)
+    outliers = float(parts[2]) if len(parts) > 2 else 0.0
+    return phantom_case(workdir, seed, int(parts[0]), float(parts[1]), sternum=sternum, outlier_fraction=outliers)
 
 
 def baseline_for(case):

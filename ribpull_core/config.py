@@ -54,7 +54,13 @@ class SectionQuadricConfig:
     min_points: a window needs this many points; reweightings, robust_mm: refits with Cauchy
     weights of this scale on the points' distances to the quadric; max_move_mm: a vertex whose
     quadric is farther stays; smoothing_iterations: Taubin smoothing (lambda 0.5, nu -0.53) before
-    and after each pass; passes: fit-and-project rounds.
+    and after each pass; passes: fit-and-project rounds. refined_patch_radius_mm: a point cloud the
+    round patches do refine gets them too, after those, when its patches had to reach farther than
+    this (mm) to hold their points (`RefinePlan.patch_radius_mm`; None: never): on the bench's 20k
+    points (5.4-5.5 mm patches) CD-L1 0.2986 -> 0.2876 mm (0 mm noise), 0.3726 -> 0.2998 (0.3 mm),
+    0.3732 -> 0.3033 (0.3 mm + 2 % outliers), screened Poisson 0.413 / 0.425 / 0.418; on 60k points
+    (3.9 mm patches) they made it worse: 0.2130 -> 0.2763 (0 mm), 0.2569 -> 0.2840 (0.3 mm) (1M
+    samples, /tmp harness on the refined `default` meshes, 2026-12-06).
     Measured (benchmarks/section_quadrics_ab.py, 1M samples, CD-L1 mm, 2026-12-06; screened
     Poisson / off / one pass / two passes): 10k points / 1 mm noise 0.868 / 0.922 / 0.796 / 0.779;
     20k / 1 mm 0.572 / 0.576 / 0.488 / 0.487; 60k / 1 mm 0.449 / 0.410 / 0.346 / 0.353; 5k / 0, 0.3, 1
@@ -74,6 +80,7 @@ class SectionQuadricConfig:
     max_move_mm: float = 2.0
     smoothing_iterations: int = 5
     passes: int = 2
+    refined_patch_radius_mm: float | None = 4.5
 
 
 @dataclass
@@ -168,7 +175,8 @@ class RefineConfig:
     1.33). None: radius_mm for label maps too.
 
     section: an input the round patches do not refine (too noisy: after the flow and the tube
-    patches; too sparse: as meshed) is then projected onto implicit quadrics of its points over
+    patches; too sparse: as meshed), and a point cloud they refine with patches wider than
+    section.refined_patch_radius_mm, is then projected onto implicit quadrics of its points over
     windows that hold a rib's whole cross-section (a SectionQuadricConfig; along_mm 0 disables).
 
     Chosen on the phantom (300k-sample CD-L1 of the refined mesh, mm): the best patch held ~20

@@ -179,6 +179,12 @@ def refine_vertices(vertices_mm: np.ndarray, points_mm: np.ndarray, config: Refi
     if faces is not None and config.fair_order > 0 and not moved.all():
         out, n_faired = fair_vertices(out, faces, ~moved, order=config.fair_order)
     summary = {**plan.summary(), **_moved_summary(shift, moved), "faired_vertices": int(n_faired)}
+    section = config.section
+    if (faces is not None and smoothing_time_mm2 == 0 and section.along_mm > 0 and section.refined_patch_radius_mm is not None
+            and plan.patch_radius_mm > section.refined_patch_radius_mm):
+        # a point cloud whose patches had to stretch to hold their points (~20k on a ribcage): a
+        # window around the rib's whole cross-section holds several times as many
+        out, summary["section_quadrics"] = _onto_section_quadrics(out, faces, pts, section)
     if faces is not None and smoothing_time_mm2 > 0 and config.label_map_tube.along_mm > 0:
         # a label map's: the voxel staircase the round patches leave, averaged along the rib (all
         # boundary points count alike here: that is how benchmarks/label_map_tube_ab.py measured it)

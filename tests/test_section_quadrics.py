@@ -96,3 +96,16 @@ def test_a_too_sparse_input_gets_the_section_quadrics_and_says_so():
     off, summary_off = refine_vertices(mesh.vertices, points, RefineConfig(section=SectionQuadricConfig(along_mm=0.0)),
                                        plan, faces=mesh.faces)
     assert "section_quadrics" not in summary_off and np.array_equal(off, mesh.vertices)
+
+
+def test_a_refined_input_gets_them_only_where_its_patches_had_to_stretch():
+    mesh = _tube_mesh(0.6, 0.3)
+    config = RefineConfig()
+    for n_points, wanted in ((260, True), (3000, False)):  # 13-point patches ~5 mm, 32-point ~2.6 mm wide
+        points = _noisy_points(n_points, 0.3)
+        plan = plan_refinement(points, config)
+        assert plan.applies, plan
+        assert (plan.patch_radius_mm > config.section.refined_patch_radius_mm) == wanted, plan
+        out, summary = refine_vertices(mesh.vertices, points, config, plan, faces=mesh.faces)
+        assert ("section_quadrics" in summary) == wanted, summary
+        assert _rms_off_truth_mm(out) < 0.5 * _rms_off_truth_mm(mesh.vertices)
