@@ -31,7 +31,7 @@ import numpy as np
 from numba import njit, prange
 from scipy.spatial import cKDTree
 
-from .tube_patches import cell_grid, tube_axes
+from .tube_patches import ball_indices, cell_grid, tube_axes
 
 #: coordinates are divided by this (mm) inside the fit: the quadric's terms of similar size
 SCALE_MM = 3.0
@@ -75,7 +75,8 @@ def taubin_quadric(local, weights):  # pragma: no cover - compiled
             big_m[r, c] = big_m[c, r]
             big_n[r, c] = big_n[c, r]
     total = big_m[9, 9]
-    reduced = big_m[:9, :9] - np.outer(big_m[:9, 9], big_m[:9, 9]) / total
+    cross = big_m[:9, 9].copy()  # the constant term's products with the others (contiguous for `@`)
+    reduced = big_m[:9, :9] - np.outer(cross, cross) / total
     chol = np.linalg.cholesky(big_n[:9, :9] + 1e-9 * total * np.eye(9))
     inv = np.linalg.inv(chol)
     pencil = inv @ reduced @ inv.T
@@ -83,7 +84,7 @@ def taubin_quadric(local, weights):  # pragma: no cover - compiled
     theta = inv.T @ vectors[:, 0]
     out = np.empty(10)
     out[:9] = theta
-    out[9] = -(big_m[:9, 9] @ theta) / total
+    out[9] = -(cross @ theta) / total
     return out
 
 
@@ -112,45 +113,28 @@ def _fit_centres(centres, normals, axes, points, lo, cell, dims, order, starts, 
     coefficients = np.zeros((n_centres, 10))
     fitted = np.zeros(n_centres, dtype=np.bool_)
     radius = 2.0 * along
-    reach = int(np.ceil(radius / cell))
-    r2 = radius * radius
     cut2 = 4.0 * across * across  # beyond 2 x across the weight is under exp(-4)
     for i in prange(n_centres):
         nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
         ax, ay, az = axes[i, 0], axes[i, 1], axes[i, 2]
         bx, by, bz = ny * az - nz * ay, nz * ax - nx * az, nx * ay - ny * ax  # n x axis
-        ci = int(np.floor((centres[i, 0] - lo[0]) / cell))
-        cj = int(np.floor((centres[i, 1] - lo[1]) / cell))
-        ck = int(np.floor((centres[i, 2] - lo[2]) / cell))
-        k0 = min(max(ck - reach, 0), dims[2])  # a centre beyond the grid reads no cell
-        k1 = max(min(ck + reach + 1, dims[2]), k0)
-        count = 0
-        for ca in range(max(ci - reach, 0), min(ci + reach + 1, dims[0])):
-            for cb in range(max(cj - reach, 0), min(cj + reach + 1, dims[1])):
-                base = (ca * dims[1] + cb) * dims[2]
-                count += starts[base + k1] - starts[base + k0]
-        local = np.empty((count, 3))
-        window = np.empty(count)
+        ball = ball_indices(points, lo, cell, dims, order, starts, centres[i], radius)
+        local = np.empty((len(ball), 3))
+        window = np.empty(len(ball))
         q = 0
-        for ca in range(max(ci - reach, 0), min(ci + reach + 1, dims[0])):
-            for cb in range(max(cj - reach, 0), min(cj + reach + 1, dims[1])):
-                base = (ca * dims[1] + cb) * dims[2]
-                for t in range(starts[base + k0], starts[base + k1]):
-                    p = order[t]
-                    dx = points[p, 0] - centres[i, 0]
-                    dy = points[p, 1] - centres[i, 1]
-                    dz = points[p, 2] - centres[i, 2]
-                    if dx * dx + dy * dy + dz * dz > r2:
-                        continue
-                    a = dx * ax + dy * ay + dz * az
-                    b = dx * bx + dy * by + dz * bz
-                    h = dx * nx + dy * ny + dz * nz
-                    hc = h + 0.5 * across  # the window's centre: half across_mm inside the surface
-                    if b * b + hc * hc > cut2:
-                        continue
-                    local[q, 0], local[q, 1], local[q, 2] = a / SCALE_MM, b / SCALE_MM, h / SCALE_MM
-                    window[q] = np.exp(-(a / along) ** 2 - (b * b + hc * hc) / (across * across))
-                    q += 1
+        for p in ball:
+            dx = points[p, 0] - centres[i, 0]
+            dy = points[p, 1] - centres[i, 1]
+            dz = points[p, 2] - centres[i, 2]
+            a = dx * ax + dy * ay + dz * az
+            b = dx * bx + dy * by + dz * bz
+            h = dx * nx + dy * ny + dz * nz
+            hc = h + 0.5 * across  # the window's centre: half across_mm inside the surface
+            if b * b + hc * hc > cut2:
+                continue
+            local[q, 0], local[q, 1], local[q, 2] = a / SCALE_MM, b / SCALE_MM, h / SCALE_MM
+            window[q] = np.exp(-(a / along) ** 2 - (b * b + hc * hc) / (across * across))
+            q += 1
         if q < min_points:
             continue
         local = local[:q]

@@ -57,6 +57,39 @@ def _typical_radius(queries: np.ndarray, tree: cKDTree, k: int, n_sample: int = 
     return float(np.median(d[np.isfinite(d)])) if np.isfinite(d).any() else 0.0
 
 
+@njit(cache=True)
+def ball_indices(points, lo, cell, dims, order, starts, centre, radius):  # pragma: no cover - compiled
+    """(K,) indices of the (N, 3) points (mm; their `cell_grid`: lo, cell, dims, order, starts)
+    within radius (mm) of centre (3,), in the grid's cell order. A centre beyond the grid gets the
+    points of the cells it reaches, if any."""
+    reach = int(np.ceil(radius / cell))
+    r2 = radius * radius
+    ci = int(np.floor((centre[0] - lo[0]) / cell))
+    cj = int(np.floor((centre[1] - lo[1]) / cell))
+    ck = int(np.floor((centre[2] - lo[2]) / cell))
+    k0 = min(max(ck - reach, 0), dims[2])
+    k1 = max(min(ck + reach + 1, dims[2]), k0)
+    count = 0
+    for a in range(max(ci - reach, 0), min(ci + reach + 1, dims[0])):
+        for b in range(max(cj - reach, 0), min(cj + reach + 1, dims[1])):
+            base = (a * dims[1] + b) * dims[2]
+            count += starts[base + k1] - starts[base + k0]
+    out = np.empty(count, dtype=np.int64)
+    n = 0
+    for a in range(max(ci - reach, 0), min(ci + reach + 1, dims[0])):
+        for b in range(max(cj - reach, 0), min(cj + reach + 1, dims[1])):
+            base = (a * dims[1] + b) * dims[2]
+            for t in range(starts[base + k0], starts[base + k1]):
+                p = order[t]
+                dx = points[p, 0] - centre[0]
+                dy = points[p, 1] - centre[1]
+                dz = points[p, 2] - centre[2]
+                if dx * dx + dy * dy + dz * dz <= r2:
+                    out[n] = p
+                    n += 1
+    return out[:n]
+
+
 @njit(parallel=True, cache=True)
 def _normal_scatter(vertices, normals, lo, cell, dims, order, starts, radius):  # pragma: no cover - compiled
     """((V, 3, 3) sum of n n^T over the vertices within `radius` of each vertex (itself included),
@@ -64,28 +97,12 @@ def _normal_scatter(vertices, normals, lo, cell, dims, order, starts, radius):  
     n_vert = vertices.shape[0]
     scatter = np.zeros((n_vert, 3, 3))
     count = np.zeros(n_vert)
-    reach = int(np.ceil(radius / cell))
-    r2 = radius * radius
     for i in prange(n_vert):
-        ci = int(np.floor((vertices[i, 0] - lo[0]) / cell))
-        cj = int(np.floor((vertices[i, 1] - lo[1]) / cell))
-        ck = int(np.floor((vertices[i, 2] - lo[2]) / cell))
-        k0 = min(max(ck - reach, 0), dims[2])  # a vertex beyond the grid reads no cell
-        k1 = max(min(ck + reach + 1, dims[2]), k0)
-        for a in range(max(ci - reach, 0), min(ci + reach + 1, dims[0])):
-            for b in range(max(cj - reach, 0), min(cj + reach + 1, dims[1])):
-                base = (a * dims[1] + b) * dims[2]
-                for t in range(starts[base + k0], starts[base + k1]):
-                    p = order[t]
-                    dx = vertices[p, 0] - vertices[i, 0]
-                    dy = vertices[p, 1] - vertices[i, 1]
-                    dz = vertices[p, 2] - vertices[i, 2]
-                    if dx * dx + dy * dy + dz * dz > r2:
-                        continue
-                    for u in range(3):
-                        for w in range(3):
-                            scatter[i, u, w] += normals[p, u] * normals[p, w]
-                    count[i] += 1.0
+        for p in ball_indices(vertices, lo, cell, dims, order, starts, vertices[i], radius):
+            for u in range(3):
+                for w in range(3):
+                    scatter[i, u, w] += normals[p, u] * normals[p, w]
+            count[i] += 1.0
     return scatter, count
 
 
@@ -119,8 +136,6 @@ def _tube_heights(vertices, normals, axes, points, lo, cell, dims, order, starts
     the vertex (the points' `cell_grid`: lo, cell, dims, order, starts)."""
     n_vert = vertices.shape[0]
     heights = np.zeros(n_vert)
-    reach = int(np.ceil(radius / cell))
-    r2 = radius * radius
     for i in prange(n_vert):
         nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
         ax, ay, az = axes[i, 0], axes[i, 1], axes[i, 2]
@@ -129,36 +144,25 @@ def _tube_heights(vertices, normals, axes, points, lo, cell, dims, order, starts
         atb = np.zeros(6)
         row = np.empty(6)
         total = 0.0
-        ci = int(np.floor((vertices[i, 0] - lo[0]) / cell))
-        cj = int(np.floor((vertices[i, 1] - lo[1]) / cell))
-        ck = int(np.floor((vertices[i, 2] - lo[2]) / cell))
-        k0 = min(max(ck - reach, 0), dims[2])  # a vertex beyond the grid reads no cell
-        k1 = max(min(ck + reach + 1, dims[2]), k0)
-        for ca in range(max(ci - reach, 0), min(ci + reach + 1, dims[0])):
-            for cb in range(max(cj - reach, 0), min(cj + reach + 1, dims[1])):
-                base = (ca * dims[1] + cb) * dims[2]
-                for t in range(starts[base + k0], starts[base + k1]):
-                    p = order[t]
-                    dx = points[p, 0] - vertices[i, 0]
-                    dy = points[p, 1] - vertices[i, 1]
-                    dz = points[p, 2] - vertices[i, 2]
-                    if dx * dx + dy * dy + dz * dz > r2:
-                        continue
-                    h = dx * nx + dy * ny + dz * nz
-                    if abs(h) >= band:
-                        continue
-                    a = (dx * ax + dy * ay + dz * az) / along
-                    b = (dx * bx + dy * by + dz * bz) / across
-                    w = np.exp(-(a * a + b * b))
-                    if w < 1e-6:
-                        continue
-                    total += w
-                    # the height field in units of (along, across): the same fit, better conditioned
-                    row[0], row[1], row[2], row[3], row[4], row[5] = 1.0, a, b, a * a, a * b, b * b
-                    for r in range(6):
-                        atb[r] += w * row[r] * h
-                        for c in range(6):
-                            ata[r, c] += w * row[r] * row[c]
+        for p in ball_indices(points, lo, cell, dims, order, starts, vertices[i], radius):
+            dx = points[p, 0] - vertices[i, 0]
+            dy = points[p, 1] - vertices[i, 1]
+            dz = points[p, 2] - vertices[i, 2]
+            h = dx * nx + dy * ny + dz * nz
+            if abs(h) >= band:
+                continue
+            a = (dx * ax + dy * ay + dz * az) / along
+            b = (dx * bx + dy * by + dz * bz) / across
+            w = np.exp(-(a * a + b * b))
+            if w < 1e-6:
+                continue
+            total += w
+            # the height field in units of (along, across): the same fit, better conditioned
+            row[0], row[1], row[2], row[3], row[4], row[5] = 1.0, a, b, a * a, a * b, b * b
+            for r in range(6):
+                atb[r] += w * row[r] * h
+                for c in range(6):
+                    ata[r, c] += w * row[r] * row[c]
         if total < min_weight:
             continue
         for r in range(6):

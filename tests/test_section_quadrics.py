@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
+from tubekit import open_tube_faces
 
 from ribpull_core.config import RefineConfig, SectionQuadricConfig
 from ribpull_core.refine import plan_refinement, refine_vertices
@@ -30,11 +31,7 @@ def _tube_mesh(offset_mm: float, bump_mm: float, n_theta: int = 72, n_z: int = 1
     xy = _ellipse(tt.ravel(), offset_mm).reshape(n_theta, n_z, 2)
     xy = xy * (1.0 + bump_mm / 4.0 * np.sin(3 * tt) * np.sin(2 * np.pi * zz / 4.0))[..., None]
     verts = np.concatenate([xy, zz[..., None]], -1).reshape(-1, 3)
-    idx = np.arange(n_theta * n_z).reshape(n_theta, n_z)
-    a, b = idx[:, :-1], idx[:, 1:]
-    c, d = np.roll(a, -1, axis=0), np.roll(b, -1, axis=0)
-    faces = np.concatenate([np.stack([a, c, b], -1).reshape(-1, 3), np.stack([b, c, d], -1).reshape(-1, 3)])
-    return trimesh.Trimesh(verts, faces, process=False)
+    return trimesh.Trimesh(verts, open_tube_faces(n_theta, n_z), process=False)
 
 
 def _noisy_points(n: int, sigma_mm: float, seed: int = 0) -> np.ndarray:

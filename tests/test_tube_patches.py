@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import trimesh
+from tubekit import open_tube_faces
 
 from ribpull_core.config import RefineConfig, TubePatchConfig
 from ribpull_core.refine import plan_refinement, refine_vertices
@@ -21,11 +22,7 @@ def _tube_mesh(bump_mm: float, n_theta: int = 64, n_z: int = 121) -> trimesh.Tri
     tt, zz = np.meshgrid(theta, z, indexing="ij")
     r = RADIUS_MM + bump_mm * np.sin(3 * tt) * np.sin(2 * np.pi * zz / 4.0)
     verts = np.stack([r * np.cos(tt), r * np.sin(tt), zz], axis=-1).reshape(-1, 3)
-    idx = np.arange(n_theta * n_z).reshape(n_theta, n_z)
-    a, b = idx[:, :-1], idx[:, 1:]
-    c, d = np.roll(a, -1, axis=0), np.roll(b, -1, axis=0)
-    faces = np.concatenate([np.stack([a, c, b], -1).reshape(-1, 3), np.stack([b, c, d], -1).reshape(-1, 3)])
-    return trimesh.Trimesh(verts, faces, process=False)
+    return trimesh.Trimesh(verts, open_tube_faces(n_theta, n_z), process=False)
 
 
 def _noisy_points(n: int, sigma_mm: float, seed: int = 0) -> np.ndarray:
