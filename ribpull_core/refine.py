@@ -226,7 +226,7 @@ def _onto_section_quadrics(vertices_mm: np.ndarray, faces: np.ndarray, points_mm
         trimesh.smoothing.filter_taubin(mesh, lamb=0.5, nu=0.53, iterations=config.smoothing_iterations)
         projected, moved = project_onto_section_quadrics(
             mesh.vertices, mesh.vertex_normals, points_mm, config.along_mm, config.across_mm, config.centre_spacing_mm,
-            config.min_points, config.reweightings, config.robust_mm, config.max_move_mm)
+            config.min_points, config.reweightings, config.robust_mm, config.robust_noise_factor, config.max_move_mm)
         mesh = trimesh.Trimesh(projected, faces, process=False)
         trimesh.smoothing.filter_taubin(mesh, lamb=0.5, nu=0.53, iterations=config.smoothing_iterations)
     out = np.asarray(mesh.vertices)

@@ -13,7 +13,7 @@ At each fitting centre (a vertex; `centre_spacing_mm` apart) the window is a Gau
 `across_mm` inside the surface (towards the rib's axis). The quadric is Taubin's fit (the algebraic
 error over its mean squared gradient: nearly free of the bias a plain algebraic fit has on curved
 data), refit `reweightings` times with Cauchy weights on each point's Sampson distance (scale
-`robust_mm`), so that a neighbouring rib's points inside the window count little. Every vertex then
+`robust_mm`, or more on noisy input: `robust_noise_factor` x the window's residual), so that a neighbouring rib's points inside the window count little. Every vertex then
 moves along its normal to the nearest root of its nearest centre's quadric, if that is within
 `max_move_mm`. Taubin smoothing before (the fit's frame needs steady normals) and after (the
 per-centre fits are independent, so their seams are noise) completes the step.
@@ -106,7 +106,7 @@ def _sampson_mm(theta, a, b, h, m, g):  # pragma: no cover - compiled
 
 @njit(parallel=True, cache=True)
 def _fit_centres(centres, normals, axes, points, lo, cell, dims, order, starts, along, across, min_points,
-                 reweightings, robust):  # pragma: no cover - compiled
+                 reweightings, robust, noise_factor):  # pragma: no cover - compiled
     """((C, 10) quadric coefficients in each centre's scaled frame (axis, normal x axis, normal), (C,)
     fitted). The window: the points within 2 x along of the centre (`cell_grid` of the points)."""
     n_centres = centres.shape[0]
@@ -143,9 +143,15 @@ def _fit_centres(centres, normals, axes, points, lo, cell, dims, order, starts, 
         m = np.empty(10)
         g = np.zeros((3, 10))
         theta = taubin_quadric(local, weights)
+        scale = robust
+        if noise_factor > 0:  # noisy points: the scale follows this window's own residuals (their MAD)
+            residuals = np.empty(q)
+            for p in range(q):
+                residuals[p] = _sampson_mm(theta, local[p, 0], local[p, 1], local[p, 2], m, g)
+            scale = max(robust, noise_factor * 1.4826 * np.median(residuals))
         for _ in range(reweightings):
             for p in range(q):
-                u = _sampson_mm(theta, local[p, 0], local[p, 1], local[p, 2], m, g) / robust
+                u = _sampson_mm(theta, local[p, 0], local[p, 1], local[p, 2], m, g) / scale
                 weights[p] = window[p] / (1.0 + u * u)
             theta = taubin_quadric(local, weights)
         coefficients[i] = theta
@@ -214,11 +220,14 @@ def fitting_centres(vertices_mm: np.ndarray, spacing_mm: float) -> np.ndarray:
 def project_onto_section_quadrics(vertices_mm: np.ndarray, normals: np.ndarray, points_mm: np.ndarray,
                                   along_mm: float = 10.0, across_mm: float = 4.0, centre_spacing_mm: float = 1.5,
                                   min_points: int = 20, reweightings: int = 2, robust_mm: float = 2.0,
+                                  robust_noise_factor: float = 2.5,
                                   max_move_mm: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
     """(V, 3) vertices (mm) with (V, 3) unit normals and (N, 3) input points (mm) -> ((V, 3)
     vertices moved along their normals onto their nearest fitting centre's section quadric (module
     docstring), (V,) bool: which moved). Centres are vertices `centre_spacing_mm` apart
-    (`fitting_centres`); a centre's window needs min_points points, else its vertices stay."""
+    (`fitting_centres`); a centre's window needs min_points points, else its vertices stay. The
+    refits' Cauchy scale: robust_mm, or robust_noise_factor x the first fit's residuals (1.4826 x
+    their median Sampson distance) where that is larger (0: robust_mm alone)."""
     v = np.ascontiguousarray(vertices_mm, dtype=np.float64)
     n = np.ascontiguousarray(normals, dtype=np.float64)
     pts = np.ascontiguousarray(points_mm, dtype=np.float64)
@@ -231,7 +240,7 @@ def project_onto_section_quadrics(vertices_mm: np.ndarray, normals: np.ndarray, 
     centre_axes = np.ascontiguousarray(axes[centre_index])
     coefficients, fitted = _fit_centres(centres, centre_normals, centre_axes, pts, *cell_grid(pts, 0.5 * along_mm),
                                         float(along_mm), float(across_mm), int(min_points), int(reweightings),
-                                        float(robust_mm))
+                                        float(robust_mm), float(robust_noise_factor))
     if not fitted.any():
         return v.copy(), np.zeros(len(v), dtype=bool)
     fitted_index = np.flatnonzero(fitted)
