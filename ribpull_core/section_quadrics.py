@@ -233,11 +233,10 @@ def project_onto_section_quadrics(vertices_mm: np.ndarray, normals: np.ndarray, 
     pts = np.ascontiguousarray(points_mm, dtype=np.float64)
     if len(v) == 0 or len(pts) < min_points:
         return v.copy(), np.zeros(len(v), dtype=bool)
-    axes, _ = tube_axes(v, n)
     centre_index = fitting_centres(v, centre_spacing_mm)
     centres = np.ascontiguousarray(v[centre_index])
     centre_normals = np.ascontiguousarray(n[centre_index])
-    centre_axes = np.ascontiguousarray(axes[centre_index])
+    centre_axes = np.ascontiguousarray(tube_axes(v, n, at=centre_index)[0])  # the frames of the centres only
     coefficients, fitted = _fit_centres(centres, centre_normals, centre_axes, pts, *cell_grid(pts, 0.5 * along_mm),
                                         float(along_mm), float(across_mm), int(min_points), int(reweightings),
                                         float(robust_mm), float(robust_noise_factor))

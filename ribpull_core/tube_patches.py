@@ -91,14 +91,14 @@ def ball_indices(points, lo, cell, dims, order, starts, centre, radius):  # prag
 
 
 @njit(parallel=True, cache=True)
-def _normal_scatter(vertices, normals, lo, cell, dims, order, starts, radius):  # pragma: no cover - compiled
-    """((V, 3, 3) sum of n n^T over the vertices within `radius` of each vertex (itself included),
-    (V,) how many). The cell grid (`cell_grid`) is of the vertices themselves."""
-    n_vert = vertices.shape[0]
-    scatter = np.zeros((n_vert, 3, 3))
-    count = np.zeros(n_vert)
-    for i in prange(n_vert):
-        for p in ball_indices(vertices, lo, cell, dims, order, starts, vertices[i], radius):
+def _normal_scatter(queries, vertices, normals, lo, cell, dims, order, starts, radius):  # pragma: no cover - compiled
+    """((Q, 3, 3) sum of n n^T over the vertices within `radius` of each of the (Q, 3) queries,
+    (Q,) how many). The cell grid (`cell_grid`) is of the vertices."""
+    n_query = queries.shape[0]
+    scatter = np.zeros((n_query, 3, 3))
+    count = np.zeros(n_query)
+    for i in prange(n_query):
+        for p in ball_indices(vertices, lo, cell, dims, order, starts, queries[i], radius):
             for u in range(3):
                 for w in range(3):
                     scatter[i, u, w] += normals[p, u] * normals[p, w]
@@ -107,7 +107,7 @@ def _normal_scatter(vertices, normals, lo, cell, dims, order, starts, radius):  
 
 
 def tube_axes(vertices_mm: np.ndarray, normals: np.ndarray, radius_mm: float = AXIS_RADIUS_MM,
-              min_neighbours: int = 16) -> tuple[np.ndarray, np.ndarray]:
+              min_neighbours: int = 16, at: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(V, 3) vertices (mm) and their (V, 3) unit normals -> ((V, 3) unit tube axes, (V,) axis
     spread): at each vertex the least eigenvector of its neighbours' normal scatter sum(n n^T),
     projected into the vertex's tangent plane, and that least eigenvalue over the neighbour count
@@ -115,15 +115,18 @@ def tube_axes(vertices_mm: np.ndarray, normals: np.ndarray, radius_mm: float = A
     the surface bends both ways, e.g. a rib's end or a junction of a cartilage with the sternum).
     The neighbours: the vertices within radius_mm of a vertex, so that bumps smaller than that do
     not set the axis whatever the mesh's resolution; on a mesh so coarse that radius_mm holds fewer
-    than min_neighbours vertices, the radius that holds that many (the median over a sample)."""
+    than min_neighbours vertices, the radius that holds that many (the median over a sample).
+    at: (A,) vertex indices to return them at (all vertices' neighbours still count); None: every vertex."""
     v = np.ascontiguousarray(vertices_mm, dtype=np.float64)
     n = np.ascontiguousarray(normals, dtype=np.float64)
     if len(v) == 0:
         return np.zeros((0, 3)), np.zeros(0)
     radius = max(float(radius_mm), _typical_radius(v, cKDTree(v), min_neighbours))
-    scatter, count = _normal_scatter(v, n, *cell_grid(v, radius), radius)
+    queries = v if at is None else np.ascontiguousarray(v[at])
+    scatter, count = _normal_scatter(queries, v, n, *cell_grid(v, radius), radius)
     eigenvalues, eigenvectors = np.linalg.eigh(scatter)
     axis = eigenvectors[:, :, 0]
+    n = n if at is None else n[at]
     axis -= (axis * n).sum(1, keepdims=True) * n
     return axis / np.maximum(np.linalg.norm(axis, axis=1, keepdims=True), 1e-12), eigenvalues[:, 0] / np.maximum(count, 1.0)
 
