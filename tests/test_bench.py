@@ -454,3 +454,20 @@ def test_a_stopped_bench_keeps_the_rows_of_its_finished_runs(tmp_path):
     assert len(rows) == 1 and rows[0]["status"] == "ok" and rows[0]["method"] == "sparseocc smoke"
     assert not (tmp_path / "out" / "results.md").exists()  # the report is written at the end only
     assert "| sparseocc smoke | 1 |" in bench.rewrite_outputs(tmp_path / "out")["markdown"]
+
+
+def test_sweep_floor_is_judged_per_seed():
+    """A floor missed at one seed is not met, though the means over the seeds meet it (each seed is
+    another phantom); the table says how many seeds met it."""
+    rows = []
+    for seed, (hd_default, hd_baseline) in enumerate(((0.9, 1.0), (1.2, 1.0), (0.9, 1.0))):  # means 1.0 vs 1.0
+        for method, kind, cd, hd in (("sparseocc default", "pipeline", 0.23, hd_default),
+                                     ("mc_taubin (20 it)", "mc_taubin", 0.27, hd_baseline)):
+            rows.append(_sweep_row(method, kind, "mask1.5mm-pv", input_kind="mask", cd=cd, hd=hd, seed=seed,
+                                   case=f"phantom-s{seed}-mask1.5mm-pv"))
+    verdict = bench.sweep_summary(rows)[0]
+    assert verdict["default_hausdorff_mm"] == pytest.approx(1.0) and verdict["baseline_hausdorff_mm"] == pytest.approx(1.0)
+    assert verdict["floor_met"] is False and (verdict["seeds_met"], verdict["seeds_judged"]) == (2, 3)
+    assert "**NO** (2 of 3 seeds)" in "\n".join(bench.sweep_table([verdict]))
+    fixed = [{**r, "hausdorff_mm": 0.95} if r["seed"] == 1 and r["kind"] == "pipeline" else r for r in rows]
+    assert bench.sweep_summary(fixed)[0]["floor_met"] is True
