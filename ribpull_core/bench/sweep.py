@@ -92,13 +92,25 @@ def _side(rows: list[dict], prefix: str) -> dict:
             f"{prefix}peak_rss_mb": _mean(ok, "peak_rss_mb")}
 
 
-def _verdict(first: dict, d: dict, b: dict) -> tuple[float, bool | None]:
-    """(CD-L1 ratio default / baseline, floor met: True / False, None when a side has no
-    successful row) of one case from its default_* and baseline_* sides (`_side`)."""
-    ratio_max, hd_vs_baseline, hd_max, separation, _ = floor_of(first)
-    ratio = d["default_cd_l1_mm"] / b["baseline_cd_l1_mm"] if finite(b["baseline_cd_l1_mm"]) and b["baseline_cd_l1_mm"] > 0 else float("nan")
+def _sides(rows: list[dict]) -> tuple[dict, dict]:
+    """(default_*, baseline_*) sides (`_side`) of one case's rows."""
+    return (_side([r for r in rows if is_default(r)], "default_"),
+            _side([r for r in rows if is_baseline(r)], "baseline_"))
+
+
+def _cd_ratio(d: dict, b: dict) -> float:
+    """CD-L1 default / baseline of two sides (`_sides`); nan when the baseline has none."""
+    base = b["baseline_cd_l1_mm"]
+    return d["default_cd_l1_mm"] / base if finite(base) and base > 0 else float("nan")
+
+
+def _floor_met(floor: tuple, d: dict, b: dict) -> bool | None:
+    """Whether two sides (`_sides`) meet a case's floor (`floor_of`); None when a side has no
+    successful row."""
+    ratio_max, hd_vs_baseline, hd_max, separation, _ = floor
+    ratio = _cd_ratio(d, b)
     if not (finite(ratio) and finite(d["default_hausdorff_mm"])):
-        return ratio, None
+        return None
     met = ratio <= ratio_max + 1e-9
     if hd_vs_baseline:
         met = met and d["default_hausdorff_mm"] <= b["baseline_hausdorff_mm"]
@@ -106,7 +118,7 @@ def _verdict(first: dict, d: dict, b: dict) -> tuple[float, bool | None]:
         met = met and d["default_hausdorff_mm"] <= hd_max
     if separation:
         met = met and finite(d["default_n_isolated"]) and d["default_n_isolated"] >= d["default_n_separable"]
-    return ratio, bool(met)
+    return bool(met)
 
 
 def sweep_summary(rows: list[dict]) -> list[dict]:
@@ -125,20 +137,15 @@ def sweep_summary(rows: list[dict]) -> list[dict]:
     out = []
     for key in dict.fromkeys(map(_key, sel)):
         case_rows = [r for r in sel if _key(r) == key]
-        first = case_rows[0]
-        d = _side([r for r in case_rows if is_default(r)], "default_")
-        b = _side([r for r in case_rows if is_baseline(r)], "baseline_")
-        ratio, _ = _verdict(first, d, b)
-        per_seed = []
-        for seed in dict.fromkeys(r.get("seed") for r in case_rows):
-            seed_rows = [r for r in case_rows if r.get("seed") == seed]
-            per_seed.append(_verdict(first, _side([r for r in seed_rows if is_default(r)], "default_"),
-                                     _side([r for r in seed_rows if is_baseline(r)], "baseline_"))[1])
-        judged = [v for v in per_seed if v is not None]
+        first, floor = case_rows[0], floor_of(case_rows[0])
+        d, b = _sides(case_rows)
+        seeds = dict.fromkeys(r.get("seed") for r in case_rows)
+        verdicts = [_floor_met(floor, *_sides([r for r in case_rows if r.get("seed") == seed])) for seed in seeds]
+        judged = [v for v in verdicts if v is not None]
         out.append({"case": case_title(first), "variant": key[1], "group": key[0], "input_kind": first.get("input_kind"),
                     "n_points": first.get("n_points"), "noise_mm": first.get("noise_mm"),
                     "outlier_fraction": first.get("outlier_fraction"), "spacing_mm": first.get("spacing_mm"),
-                    "sternum": bool(first.get("sternum")), **d, **b, "cd_l1_ratio": ratio, "floor": floor_of(first)[4],
+                    "sternum": bool(first.get("sternum")), **d, **b, "cd_l1_ratio": _cd_ratio(d, b), "floor": floor[4],
                     "floor_met": all(judged) if judged else None, "seeds_met": sum(judged), "seeds_judged": len(judged)})
     return out
 
