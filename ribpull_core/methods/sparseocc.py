@@ -226,6 +226,12 @@ def default_config() -> SparseOccConfig:
     went 9 -> 20 of 20 from 60k / 0.3 mm points (Poisson 16; 19 in the sweep at 2480e20 with a
     5 mm reach) and 15 -> 20 of 20 from the 1.5 mm label map (marching cubes + Taubin 20), CD-L1
     unchanged (0.447 / 0.442 mm, 300k samples).
+    A label map's step hinges 8192 of its voxel centres (known occupancy), not 4096: with 4096 each
+    centre is drawn about 3 times in a fit, and thin sheets of the wrong sign grew between them
+    where structures nearly touch (a fissure across a costal cartilage's end, a fin from the
+    sternum's edge into a cartilage's 1 mm gap), so the sternum map's Hausdorff distance hung on the
+    seed: 2.48 / 2.04 / 1.42 mm at seeds 1 / 2 / 0 (400k samples per side), 1.60 / 1.46 / 1.44 with
+    8192 (phantom 0 at fit seeds 1 / 2: 1.46 / 1.49; 16384 was no better: 1.50 / 1.44 / 1.94).
     Measured in docs/benchmarks.md (benchmarks/pull_targets_ab.py, benchmarks/offset_cap_ab.py,
     benchmarks/gap_ab.py)."""
     return SparseOccConfig(
@@ -237,7 +243,7 @@ def default_config() -> SparseOccConfig:
         entropy=EntropyConfig(input_points=1000, uniform_points=1000, lambda_max=1.0, n_minimax=200),
         sign=SignConfig(free_space_weight=10.0, free_space_points=2048, near_surface_weight=10.0,
                         near_surface_points=4096, near_surface_offset_max_mm=1.0, known_weight=10.0,
-                        gap_weight=10.0, near_surface_centres="quadric_when_noisy"),
+                        known_points=8192, gap_weight=10.0, near_surface_centres="quadric_when_noisy"),
         schedule=ScheduleConfig(iterations=1000, lr=2e-3, warmup=30, final_lr_ratio=0.05, early_stop_window=100,
                                 early_stop_rel_tol=0.005, early_stop_min_fraction=0.6),
     )
@@ -249,7 +255,7 @@ def smoke_config() -> SparseOccConfig:
     return dataclasses.replace(
         c,
         queries=dataclasses.replace(c.queries, n_queries=100_000, batch_size=1024),
-        sign=dataclasses.replace(c.sign, free_space_points=1024, near_surface_points=2048),
+        sign=dataclasses.replace(c.sign, free_space_points=1024, near_surface_points=2048, known_points=4096),
         schedule=dataclasses.replace(c.schedule, iterations=250, early_stop_window=0),
     )
 
