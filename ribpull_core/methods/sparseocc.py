@@ -231,7 +231,10 @@ def default_config() -> SparseOccConfig:
     where structures nearly touch (a fissure across a costal cartilage's end, a fin from the
     sternum's edge into a cartilage's 1 mm gap), so the sternum map's Hausdorff distance hung on the
     seed: 2.48 / 2.04 / 1.42 mm at seeds 1 / 2 / 0 (400k samples per side), 1.60 / 1.46 / 1.44 with
-    8192 (phantom 0 at fit seeds 1 / 2: 1.46 / 1.49; 16384 was no better: 1.50 / 1.44 / 1.94).
+    8192 (phantom 0 at fit seeds 1 / 2: 1.46 / 1.49; 16384 was no better: 1.50 / 1.44 / 1.94). In
+    `ribpull bench` (1M samples, seeds 0-2): sternum map 1.17 / 2.47 / 2.08 -> 1.40 / 1.42 / 1.30 mm
+    (mc_taubin 1.21 / 1.32 / 1.22: still over it), 1.5 mm map 0.90 / 0.89 / 1.01 -> 0.94 / 0.89 /
+    0.88 (mc_taubin 1.03 / 1.02 / 1.00), CD-L1 the same; the fit ~6 % slower.
     Measured in docs/benchmarks.md (benchmarks/pull_targets_ab.py, benchmarks/offset_cap_ab.py,
     benchmarks/gap_ab.py)."""
     return SparseOccConfig(
