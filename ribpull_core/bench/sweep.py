@@ -11,6 +11,8 @@ mc_taubin's HD; at 60k points / 0.3 mm noise (no outliers) also HD <= 3 mm.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 from .common import ACCURACY_GROUPS, GROUP_ACC_POINTS, finite, num
 from .plan import SPARSEOCC_DEFAULT, baseline_kind
 from .report import fmt_mean, md_table, mean_std
@@ -62,19 +64,31 @@ def case_title(r: dict) -> str:
     return out
 
 
-def floor_of(r: dict) -> tuple[float, bool, float | None, bool, str]:
-    """(CD-L1 ratio bound, HD must not exceed the baseline's, HD bound in mm or None, every
-    separable rib must be its own component, text) of a case. The separation floor (issue 9) is
-    the sternum phantom's: its ribs come within 1.5-3 mm of the cartilages."""
+class Floor(NamedTuple):
+    """A sweep case's floor (issue 9): CD-L1 ratio bound, whether the HD must not exceed the
+    baseline's, an HD bound in mm (None: none), whether every separable rib must be its own
+    component, and the floor as text."""
+
+    ratio_max: float
+    hd_vs_baseline: bool
+    hd_max_mm: float | None
+    separation: bool
+    text: str
+
+
+def floor_of(r: dict) -> Floor:
+    """The Floor of a case. The separation floor (issue 9) is the sternum phantom's: its ribs come
+    within 1.5-3 mm of the cartilages."""
     separation = bool(r.get("sternum"))
     also = ", every separable rib its own part" if separation else ""
     if r.get("input_kind") == "mask":
         x = FLOOR_RATIO_LABEL_MAPS
-        return x, True, None, separation, f"CD-L1 ≤ {x:g}× mc_taubin, HD ≤ mc_taubin's" + also
+        return Floor(x, True, None, separation, f"CD-L1 ≤ {x:g}× mc_taubin, HD ≤ mc_taubin's" + also)
     n, noise = int(num(r.get("n_points"))), num(r.get("noise_mm"))
     x = FLOOR_RATIO_MANY_POINTS if n > FLOOR_POINTS_SPLIT else FLOOR_RATIO_FEW_POINTS
     hd = FLOOR_HD_MM if (n, noise) == FLOOR_HD_CASE and not num(r.get("outlier_fraction") or 0) > 0 else None
-    return x, False, hd, separation, f"CD-L1 ≤ {x:.1f}× Poisson" + (f", HD ≤ {hd:g} mm" if hd is not None else "") + also
+    return Floor(x, False, hd, separation,
+                 f"CD-L1 ≤ {x:.1f}× Poisson" + (f", HD ≤ {hd:g} mm" if hd is not None else "") + also)
 
 
 def _mean(rows: list[dict], col: str) -> float:
@@ -104,19 +118,18 @@ def _cd_ratio(d: dict, b: dict) -> float:
     return d["default_cd_l1_mm"] / base if finite(base) and base > 0 else float("nan")
 
 
-def _floor_met(floor: tuple, d: dict, b: dict) -> bool | None:
+def _floor_met(floor: Floor, d: dict, b: dict) -> bool | None:
     """Whether two sides (`_sides`) meet a case's floor (`floor_of`); None when a side has no
     successful row."""
-    ratio_max, hd_vs_baseline, hd_max, separation, _ = floor
     ratio = _cd_ratio(d, b)
     if not (finite(ratio) and finite(d["default_hausdorff_mm"])):
         return None
-    met = ratio <= ratio_max + 1e-9
-    if hd_vs_baseline:
+    met = ratio <= floor.ratio_max + 1e-9
+    if floor.hd_vs_baseline:
         met = met and d["default_hausdorff_mm"] <= b["baseline_hausdorff_mm"]
-    if hd_max is not None:
-        met = met and d["default_hausdorff_mm"] <= hd_max
-    if separation:
+    if floor.hd_max_mm is not None:
+        met = met and d["default_hausdorff_mm"] <= floor.hd_max_mm
+    if floor.separation:
         met = met and finite(d["default_n_isolated"]) and d["default_n_isolated"] >= d["default_n_separable"]
     return bool(met)
 
@@ -145,14 +158,14 @@ def sweep_summary(rows: list[dict]) -> list[dict]:
         out.append({"case": case_title(first), "variant": key[1], "group": key[0], "input_kind": first.get("input_kind"),
                     "n_points": first.get("n_points"), "noise_mm": first.get("noise_mm"),
                     "outlier_fraction": first.get("outlier_fraction"), "spacing_mm": first.get("spacing_mm"),
-                    "sternum": bool(first.get("sternum")), **d, **b, "cd_l1_ratio": _cd_ratio(d, b), "floor": floor[4],
+                    "sternum": bool(first.get("sternum")), **d, **b, "cd_l1_ratio": _cd_ratio(d, b), "floor": floor.text,
                     "floor_met": all(judged) if judged else None, "seeds_met": sum(judged), "seeds_judged": len(judged)})
     return out
 
 
 def _met_cell(s: dict) -> str:
     """The table's "met" cell: yes / **NO** / —, with the seeds that met it when more than one was judged."""
-    met, judged = s.get("seeds_met", 0), s.get("seeds_judged", 0)
+    met, judged = s["seeds_met"], s["seeds_judged"]
     return {True: "yes", False: "**NO**", None: "—"}[s["floor_met"]] + (f" ({met} of {judged} seeds)" if judged > 1 else "")
 
 
