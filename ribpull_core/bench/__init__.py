@@ -13,7 +13,9 @@ call as `ribpull fit`; the classical baselines (screened Poisson on the points, 
 voxel mask, plain or Taubin-smoothed) get the same mesh clean-up, skeleton and scoring. Surfaces are
 scored with `metrics.surface_metrics` (mm; paper units = the normalised [-1, 1] frame of the input,
 CD-L1 and HD x100, CD-L2 x1e4) against the TRUE surface for phantom cases, else against the input
-points. Skeletons are scored with `skeleton_metrics` against the phantom's true centerlines.
+points: samples on one surface measured exactly to the other (`triangle_distance`); results.csv
+also keeps the sample-to-sample figures (cd_l1_sampled_mm, hausdorff_sampled_mm) that this
+project's tables reported before 2026-12-06. Skeletons are scored with `skeleton_metrics` against the phantom's true centerlines.
 
 Modules: plan (methods, cases, plans), run (child processes, timers, memory), tasks (what a child
 does per method kind), baselines (the classical methods), score (against the truth), report (CSV,

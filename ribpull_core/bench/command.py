@@ -156,7 +156,9 @@ def main(args: argparse.Namespace) -> int:
     its = {m.label: (m.iterations or "preset schedule") for m, _ in plan if m.kind == "pipeline"}
     meta = {"command": "ribpull " + " ".join(sys.argv[1:]) if Path(sys.argv[0]).name == "ribpull" else f"ribpull bench ({mode})",
             "mode": mode, "seeds": list(seeds), "iterations": ", ".join(f"{k}: {v}" for k, v in its.items()) or "—",
-            "surface metric samples per side": f"{args.metric_samples:,}", **machine_meta()}
+            "surface metric samples per side": f"{args.metric_samples:,}",
+            "surface distances": "each sample to the other surface's triangles (exact); sample to sample in "
+                                 "results.csv's *_sampled_mm columns", **machine_meta()}
     if not args.no_speed_section and truth_points is not None:
         meta["speed section"] = ("paper preset's full schedule extrapolated from its run in the plan, else from "
                                  f"{SPEED_PAPER_ITERATIONS} timed iterations")

@@ -39,7 +39,8 @@ def score_surface(case: dict, mesh, paper_units_per_mm: float, n_samples: int, s
                         paper_units_per_mm=paper_units_per_mm, seed=seed)
     ms = mesh_summary(mesh)
     keep = ("cd_l1_mm", "cd_l2_mm2", "hausdorff_mm", "cd_l1_paper", "cd_l2_paper", "hausdorff_paper",
-            "normal_consistency", "fscore", "precision", "recall", "tau_mm", "paper_units_per_mm")
+            "cd_l1_sampled_mm", "hausdorff_sampled_mm", "normal_consistency", "fscore", "precision", "recall",
+            "tau_mm", "paper_units_per_mm")
     return {**{k: s[k] for k in keep}, "reference": name, "metric_samples": n_samples,
             "mesh_components": ms["components"], "mesh_watertight": ms["watertight"], "mesh_faces": ms["n_faces"]}
 

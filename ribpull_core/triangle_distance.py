@@ -1,0 +1,156 @@
+"""Exact distance from points to a triangle mesh's surface (kd-tree of triangle centroids + numba).
+
+A kd-tree of dense area-uniform samples on a mesh answers "how far is the nearest sample", which is
+the distance to the surface plus a sampling error: with 1M samples on a ribcage (~0.45 mm apart) a
+point lying exactly on the surface is up to ~0.9 mm from its nearest sample at the worst of 1M
+queries, so a Hausdorff distance measured sample to sample has a floor near 0.9 mm whatever the
+mesh. `distance_to_surface` measures to the triangles themselves. All lengths are in the units of
+the inputs (millimetres here).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+from scipy import ndimage
+from scipy.spatial import cKDTree
+
+
+@njit(inline="always")
+def _dot(ax, ay, az, bx, by, bz):  # pragma: no cover - compiled
+    return ax * bx + ay * by + az * bz
+
+
+@njit(cache=True)
+def point_triangle_sq(p, a, b, c):  # pragma: no cover - compiled
+    """Squared distance from point p (3,) to the triangle (a, b, c) (each (3,)): the closest point
+    by the triangle's Voronoi regions (vertex, edge or face), as in Ericson's Real-Time Collision
+    Detection, 5.1.5. Degenerate triangles fall into an edge or vertex region."""
+    abx, aby, abz = b[0] - a[0], b[1] - a[1], b[2] - a[2]
+    acx, acy, acz = c[0] - a[0], c[1] - a[1], c[2] - a[2]
+    apx, apy, apz = p[0] - a[0], p[1] - a[1], p[2] - a[2]
+    d1 = _dot(abx, aby, abz, apx, apy, apz)
+    d2 = _dot(acx, acy, acz, apx, apy, apz)
+    if d1 <= 0.0 and d2 <= 0.0:
+        qx, qy, qz = a[0], a[1], a[2]
+    else:
+        bpx, bpy, bpz = p[0] - b[0], p[1] - b[1], p[2] - b[2]
+        d3 = _dot(abx, aby, abz, bpx, bpy, bpz)
+        d4 = _dot(acx, acy, acz, bpx, bpy, bpz)
+        cpx, cpy, cpz = p[0] - c[0], p[1] - c[1], p[2] - c[2]
+        d5 = _dot(abx, aby, abz, cpx, cpy, cpz)
+        d6 = _dot(acx, acy, acz, cpx, cpy, cpz)
+        vc = d1 * d4 - d3 * d2
+        vb = d5 * d2 - d1 * d6
+        va = d3 * d6 - d5 * d4
+        if d3 >= 0.0 and d4 <= d3:
+            qx, qy, qz = b[0], b[1], b[2]
+        elif d6 >= 0.0 and d5 <= d6:
+            qx, qy, qz = c[0], c[1], c[2]
+        elif vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
+            v = d1 / (d1 - d3)
+            qx, qy, qz = a[0] + v * abx, a[1] + v * aby, a[2] + v * abz
+        elif vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
+            w = d2 / (d2 - d6)
+            qx, qy, qz = a[0] + w * acx, a[1] + w * acy, a[2] + w * acz
+        elif va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:
+            w = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+            qx, qy, qz = b[0] + w * (c[0] - b[0]), b[1] + w * (c[1] - b[1]), b[2] + w * (c[2] - b[2])
+        else:
+            denom = va + vb + vc
+            if denom <= 0.0:  # degenerate (zero area) triangle that no region above took
+                qx, qy, qz = a[0], a[1], a[2]
+            else:
+                v = vb / denom
+                w = vc / denom
+                qx = a[0] + abx * v + acx * w
+                qy = a[1] + aby * v + acy * w
+                qz = a[2] + abz * v + acz * w
+    ex, ey, ez = p[0] - qx, p[1] - qy, p[2] - qz
+    return ex * ex + ey * ey + ez * ez
+
+
+@njit(parallel=True, cache=True)
+def nearest_candidate_distance(points, triangles, candidates):  # pragma: no cover - compiled
+    """(N,) distance from each of (N, 3) `points` to the nearest of its (N, k) int64 `candidates`
+    among (F, 3, 3) `triangles` (float64); a negative candidate id is skipped."""
+    n, k = candidates.shape
+    out = np.empty(n)
+    for i in prange(n):
+        best = np.inf
+        for j in range(k):
+            f = candidates[i, j]
+            if f < 0:
+                continue
+            best = min(best, point_triangle_sq(points[i], triangles[f, 0], triangles[f, 1], triangles[f, 2]))
+        out[i] = np.sqrt(best)
+    return out
+
+
+class _ReachGrid:
+    """The largest centroid-to-corner radius of the triangles whose centroids lie in each cell of a
+    grid, maximised over the 5 x 5 x 5 cells around each: `local(p)` bounds the radius of every
+    triangle whose centroid is within 2 cells of p (None where the grid does not cover p)."""
+
+    def __init__(self, centroids: np.ndarray, radius: np.ndarray, max_cells: int = 4_000_000):
+        self.lo = centroids.min(axis=0)
+        ext = np.maximum(centroids.max(axis=0) - self.lo, 1e-12)
+        self.cell = max(2.0 * float(np.median(radius)), float(np.cbrt(np.prod(ext) / max_cells)), 1e-12)
+        self.shape = np.floor(ext / self.cell).astype(np.int64) + 1
+        cells = np.zeros(tuple(self.shape), dtype=np.float32)
+        idx = np.floor((centroids - self.lo) / self.cell).astype(np.int64)
+        np.maximum.at(cells, tuple(idx.T), radius.astype(np.float32))
+        self.grid = ndimage.maximum_filter(cells, size=5, mode="constant", cval=0.0)
+
+    def local(self, p: np.ndarray) -> tuple[np.ndarray, float]:
+        """(N,) radius bound at (N, 3) points, and the reach (2 cells) within which it holds."""
+        idx = np.floor((p - self.lo) / self.cell).astype(np.int64)
+        inside = np.all((idx >= 0) & (idx < self.shape), axis=1)
+        out = np.full(len(p), np.inf)
+        out[inside] = self.grid[tuple(idx[inside].T)]
+        return out, 2.0 * self.cell
+
+
+def distance_to_surface(points: np.ndarray, triangles: np.ndarray, k: int = 16, block: int = 262_144) -> np.ndarray:
+    """(N,) exact distance from (N, 3) `points` to the surface of (F, 3, 3) `triangles`, in their units.
+
+    Each point is measured to the triangles whose centroids are its k nearest. That is exact when the
+    best of them is no farther than the k-th centroid minus the centroid-to-corner radius of every
+    triangle that could be nearer (those within the best distance plus that radius; the largest
+    radius around the point, `_ReachGrid`, else the mesh's largest): no other triangle can then come
+    nearer. Points not yet proven so try 4k, then 16k centroids, then every triangle whose centroid
+    lies within their best distance plus the largest radius."""
+    p = np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(-1, 3))
+    tri = np.ascontiguousarray(triangles, dtype=np.float64).reshape(-1, 3, 3)
+    if len(tri) == 0:
+        raise ValueError("cannot measure distances to a mesh without triangles")
+    centroids = tri.mean(axis=1)
+    radius = np.linalg.norm(tri - centroids[:, None, :], axis=2).max(axis=1)
+    tree = cKDTree(centroids)
+    reach = _ReachGrid(centroids, radius)
+    out = np.empty(len(p))
+    for s in range(0, len(p), block):
+        out[s : s + block] = _distance_block(p[s : s + block], tri, tree, reach, float(radius.max()), k)
+    return out
+
+
+def _distance_block(p: np.ndarray, tri: np.ndarray, tree: cKDTree, reach: _ReachGrid, max_radius: float,
+                    k: int) -> np.ndarray:
+    out = np.empty(len(p))
+    todo = np.arange(len(p))
+    for kk in (k, 4 * k, 16 * k):
+        kk = min(kk, tree.n)
+        dk, nn = tree.query(p[todo], k=kk, workers=-1)
+        dk, nn = dk.reshape(len(todo), kk), nn.reshape(len(todo), kk)
+        best = nearest_candidate_distance(p[todo], tri, np.ascontiguousarray(nn, dtype=np.int64))
+        out[todo] = best
+        local, covered = reach.local(p[todo])
+        radius = np.where(best + max_radius <= covered, local, max_radius)
+        proven = (best <= dk[:, -1] - radius) | (kk == tree.n)
+        todo = todo[~proven]
+        if len(todo) == 0:
+            return out
+    for i in todo:  # rare: far from a surface of small triangles
+        near = tree.query_ball_point(p[i], out[i] + max_radius)
+        out[i] = nearest_candidate_distance(p[i : i + 1], tri, np.asarray(near, dtype=np.int64)[None])[0]
+    return out
