@@ -83,6 +83,10 @@ def _as_reference(reference, n_samples: int, seed: int) -> tuple[np.ndarray, np.
     return pts, nrm
 
 
+#: surface distances are exact up to this far (mm); beyond it they may be a triangle's radius long
+EXACT_WITHIN_MM = 3.0
+
+
 def _triangles(mesh: trimesh.Trimesh) -> np.ndarray:
     return np.asarray(mesh.vertices, dtype=np.float64)[np.asarray(mesh.faces, dtype=np.int64)]
 
@@ -102,8 +106,8 @@ def surface_metrics(
     reference: a mesh in mm (n_samples points drawn on it too) or (M, 3) points / a PointCloud in mm,
     used as is (its normals if present, else PCA normals over 16 neighbours).
     acc = distance pred samples -> reference, comp = reference points -> pred. A mesh is measured to
-    its surface (`triangle_distance.distance_to_surface`, exact),
-    a point reference to its points. Returns (mm unless named):
+    its surface (`triangle_distance.distance_to_surface`: exact up to EXACT_WITHIN_MM, farther at
+    most one triangle's radius long), a point reference to its points. Returns (mm unless named):
     cd_l1_mm = ½(mean acc + mean comp), cd_l2_mm2 = ½(mean acc² + mean comp²),
     hausdorff_mm = max(max acc, max comp), normal_consistency = ½(mean |n_p·n_r| both ways, between
     each sample and its nearest sample), precision = frac(acc <= tau), recall = frac(comp <= tau),
@@ -118,8 +122,9 @@ def surface_metrics(
     rp, rn = _as_reference(reference, n_samples, seed)
     acc_s, ia = cKDTree(rp).query(pp, k=1, workers=-1)
     comp_s, ic = cKDTree(pp).query(rp, k=1, workers=-1)
-    acc = distance_to_surface(pp, _triangles(reference)) if isinstance(reference, trimesh.Trimesh) else acc_s
-    comp = distance_to_surface(rp, _triangles(pred_mesh))
+    acc = distance_to_surface(pp, _triangles(reference), EXACT_WITHIN_MM) \
+        if isinstance(reference, trimesh.Trimesh) else acc_s
+    comp = distance_to_surface(rp, _triangles(pred_mesh), EXACT_WITHIN_MM)
     nc_acc = np.abs(np.einsum("ij,ij->i", pn, rn[ia])).mean()
     nc_comp = np.abs(np.einsum("ij,ij->i", rn, pn[ic])).mean()
     precision = float((acc <= tau_mm).mean())

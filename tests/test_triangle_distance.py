@@ -20,6 +20,10 @@ def _brute_force(points: np.ndarray, mesh: trimesh.Trimesh) -> np.ndarray:
     return out
 
 
+def _vf(tri: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return tri.reshape(-1, 3), np.arange(3 * len(tri)).reshape(-1, 3)
+
+
 def test_candidate_distance_matches_brute_force_in_every_region():
     mesh = trimesh.creation.icosphere(1, 10.0).apply_scale([1.0, 0.6, 1.4])  # 80 faces, uneven triangles
     rng = np.random.default_rng(0)
@@ -38,7 +42,7 @@ def test_degenerate_triangles_and_skipped_candidates():
     np.testing.assert_allclose(got, [1.0, 1.0, 1.0], atol=1e-12)
 
 
-def test_distance_to_surface_is_exact_near_and_far():
+def test_distance_to_surface_is_exact_near_the_surface_and_bounded_far_from_it():
     mesh = trimesh.creation.icosphere(3, 20.0).apply_scale([1.0, 0.5, 1.0])  # 1280 faces, uneven
     samples, _ = trimesh.sample.sample_surface(mesh, 20_000, seed=1)
     rng = np.random.default_rng(2)
@@ -46,7 +50,15 @@ def test_distance_to_surface_is_exact_near_and_far():
     points = np.concatenate([near + rng.normal(size=near.shape) * 0.5,  # k centroids prove these
                              rng.normal(size=(100, 3)) * 60.0])         # these need the fallbacks
     got = distance_to_surface(points, mesh.triangles, k=16, block=128)
-    np.testing.assert_allclose(got, _brute_force(points, mesh), rtol=1e-9, atol=1e-9)
+    true = _brute_force(points, mesh)
+    np.testing.assert_allclose(got[:400], true[:400], rtol=1e-9, atol=1e-9)
+    # far points: never short, and too long by at most the largest centroid-to-corner radius
+    tri = mesh.triangles
+    max_radius = np.linalg.norm(tri - tri.mean(axis=1, keepdims=True), axis=2).max()
+    assert np.all(got >= true - 1e-9) and np.all(got <= true + max_radius)
+    assert np.abs(got - true).max() < 0.5 * max_radius  # in practice much closer than the bound
+    tiny = distance_to_surface(points, tri[:10])  # fewer triangles than k: all of them, exact
+    np.testing.assert_allclose(tiny, _brute_force(points, trimesh.Trimesh(*_vf(tri[:10]))), atol=1e-9)
     to_samples, _ = cKDTree(samples).query(points)
     assert np.all(got <= to_samples + 1e-9)
     assert (to_samples - got)[:400].max() > 0.05  # the sampling error that measuring to triangles removes
