@@ -90,7 +90,7 @@ def nearest_candidate_distance(points, triangles, candidates):  # pragma: no cov
 class _ReachGrid:
     """The largest centroid-to-corner radius of the triangles whose centroids lie in each cell of a
     grid, maximised over the 5 x 5 x 5 cells around each: `local(p)` bounds the radius of every
-    triangle whose centroid is within 2 cells of p (None where the grid does not cover p)."""
+    triangle whose centroid is within 2 cells of p."""
 
     def __init__(self, centroids: np.ndarray, radius: np.ndarray, max_cells: int = 4_000_000):
         self.lo = centroids.min(axis=0)
@@ -104,11 +104,10 @@ class _ReachGrid:
 
     def local(self, p: np.ndarray) -> tuple[np.ndarray, float]:
         """(N,) radius bound at (N, 3) points, and the reach (2 cells) within which it holds."""
-        idx = np.floor((p - self.lo) / self.cell).astype(np.int64)
-        inside = np.all((idx >= 0) & (idx < self.shape), axis=1)
-        out = np.full(len(p), np.inf)
-        out[inside] = self.grid[tuple(idx[inside].T)]
-        return out, 2.0 * self.cell
+        # a point off the grid takes its nearest border cell, whose window holds every grid cell
+        # within 2 of the point's own
+        idx = np.clip(np.floor((p - self.lo) / self.cell), 0, self.shape - 1).astype(np.int64)
+        return self.grid[tuple(idx.T)].astype(np.float64), 2.0 * self.cell
 
 
 def distance_to_surface(points: np.ndarray, triangles: np.ndarray, exact_within: float = np.inf, k: int = 16,

@@ -240,6 +240,11 @@ def default_config() -> SparseOccConfig:
     `ribpull bench` (1M samples, seeds 0-2): sternum map 1.17 / 2.47 / 2.08 -> 1.40 / 1.42 / 1.30 mm
     (mc_taubin 1.21 / 1.32 / 1.22: still over it), 1.5 mm map 0.90 / 0.89 / 1.01 -> 0.94 / 0.89 /
     0.88 (mc_taubin 1.03 / 1.02 / 1.00), CD-L1 the same; the fit ~6 % slower.
+    A label map's gap hinge weighs 1, not 10 (`SignConfig.gap_weight_label_map`): at 10 it cut
+    costal-cartilage tips back 1.5-2 mm past the map's inside centres where they meet the sternum.
+    Sternum map, HD measured to the true surface (1M samples), seeds 0 / 1 / 2: 1.32 / 1.40 / 1.30
+    mm (MeshLab on the 4d401ed fits) -> 1.03 / 1.14 / 1.01 mm (`ribpull bench` at b0cecc7;
+    mc_taubin 1.06 / 1.30 / 1.05), all 20 separable ribs isolated (17 of 20 with no gap hinge).
     Measured in docs/benchmarks.md (benchmarks/pull_targets_ab.py, benchmarks/offset_cap_ab.py,
     benchmarks/gap_ab.py)."""
     return SparseOccConfig(
