@@ -87,10 +87,6 @@ def _as_reference(reference, n_samples: int, seed: int) -> tuple[np.ndarray, np.
 EXACT_WITHIN_MM = 3.0
 
 
-def _triangles(mesh: trimesh.Trimesh) -> np.ndarray:
-    return np.asarray(mesh.vertices, dtype=np.float64)[np.asarray(mesh.faces, dtype=np.int64)]
-
-
 def surface_metrics(
     pred_mesh: trimesh.Trimesh,
     reference,
@@ -122,9 +118,9 @@ def surface_metrics(
     rp, rn = _as_reference(reference, n_samples, seed)
     acc_s, ia = cKDTree(rp).query(pp, k=1, workers=-1)
     comp_s, ic = cKDTree(pp).query(rp, k=1, workers=-1)
-    acc = distance_to_surface(pp, _triangles(reference), EXACT_WITHIN_MM) \
+    acc = distance_to_surface(pp, reference.triangles, EXACT_WITHIN_MM) \
         if isinstance(reference, trimesh.Trimesh) else acc_s
-    comp = distance_to_surface(rp, _triangles(pred_mesh), EXACT_WITHIN_MM)
+    comp = distance_to_surface(rp, pred_mesh.triangles, EXACT_WITHIN_MM)
     nc_acc = np.abs(np.einsum("ij,ij->i", pn, rn[ia])).mean()
     nc_comp = np.abs(np.einsum("ij,ij->i", rn, pn[ic])).mean()
     precision = float((acc <= tau_mm).mean())

@@ -646,6 +646,9 @@ class SparseOcc(Method):
             first_ring = float(np.min(known.distance))
             margin = 0.5 * np.maximum(np.asarray(known.distance) - first_ring, 0.0)
             self.known_margin = torch.from_numpy(margin.astype(np.float32)).to(device)
+        # label maps (known occupancy) have their own gap weight when one is set
+        self.gap_weight = s.gap_weight_label_map if self.known is not None and s.gap_weight_label_map > 0 \
+            else s.gap_weight
         self.lo = torch.from_numpy(pts.min(0).astype(np.float32)).to(device) - 0.05
         self.hi = torch.from_numpy(pts.max(0).astype(np.float32)).to(device) + 0.05
         self.grid = cfg.field.network == "grid"
@@ -721,8 +724,7 @@ class SparseOcc(Method):
             terms["near_surface"] = sc.near_surface_weight * sign_margin_loss(
                 u_near, inside, torch.full_like(u_near, self.near_margin))
         if "gap" in logits:
-            w_gap = sc.gap_weight_label_map if self.known is not None and sc.gap_weight_label_map > 0 else sc.gap_weight
-            terms["gap"] = w_gap * outside_loss(logits["gap"], self.gap_margin[gidx])
+            terms["gap"] = self.gap_weight * outside_loss(logits["gap"], self.gap_margin[gidx])
         if "known" in logits:
             terms["known_occupancy"] = sc.known_weight * sign_margin_loss(
                 margin_uncertainty(logits["known"]), self.known_inside[kidx], self.known_margin[kidx])
