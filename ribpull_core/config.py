@@ -122,7 +122,9 @@ class RefineConfig:
     samples); 800 against 600 at 0.3 mm noise: HD 0.90 against 2.54 mm and 24 parts against 25,
     CD-L1 0.2272 against 0.2275 (0 / 1 mm noise: CD-L1 0.2056 / 0.3945 against 0.2055 / 0.3941;
     1M samples, benchmarks/refine_ab.py, 2026-12-03). Label maps keep fit_iterations (their
-    boundary points number ~100k).
+    boundary points number ~100k) unless label_map_fit_iterations is set.
+    label_map_fit_iterations: a label map whose field starts from the map's own solid
+    (`FieldConfig.grid_solid_prior`) is fitted for at most this many instead (None: fit_iterations).
     dense_mesh_resolution: such dense point clouds, when refined, are meshed at (at least) this
     many cells instead of the preset's: the refined vertices lie on the patches, and between them
     the flat triangles cut a rib's curvature (a 1.2 mm edge on a 4 mm radius: ~0.05 mm): at 200k /
@@ -204,6 +206,7 @@ class RefineConfig:
     fit_iterations: int | None = 400
     dense_points: int = 100_000
     dense_fit_iterations: int | None = 800
+    label_map_fit_iterations: int | None = 150
     dense_max_neighbours: int = 48
     dense_mesh_resolution: int = 384
     noise_flow_factor: float = 1.0
@@ -249,11 +252,15 @@ class LabelMapConfig:
     samples (inside / outside) for methods that use them; 0 disables.
     between_labels: faces between voxels of two different labels are boundary points of both
     structures too (`pointcloud.mask_boundary_cloud`).
+    solid_distance_cell_mm: when > 0, the map's solid also becomes a signed distance volume with
+    cells of about this edge (`pointcloud.mask_signed_distance`), a warm start for methods that
+    take one (`FieldConfig.grid_solid_prior`); 0 disables.
     """
 
     boundary_sigma_mm: float = 0.0
     band_voxels: float = 0.0
     between_labels: bool = False
+    solid_distance_cell_mm: float = 0.0
 
 
 @dataclass

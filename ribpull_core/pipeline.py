@@ -210,8 +210,15 @@ def fit_field(cloud, fit_config, device, report: _Reporter):
     if cloud.occupancy_points is not None:
         from .methods.base import KnownOccupancy
 
+        solid, unit_to_index = None, None
+        if cloud.solid_distance_mm is not None:  # in the unit frame: distances / half extent, and
+            # index = A^-1 (x_unit * half_extent + centre) for the volume's affine A (index -> mm)
+            solid = np.asarray(cloud.solid_distance_mm, np.float32) / np.float32(frame.half_extent_mm)
+            inv = np.linalg.inv(np.asarray(cloud.solid_distance_affine, dtype=np.float64))
+            unit_to_index = np.hstack([inv[:3, :3] * frame.half_extent_mm,
+                                       (inv[:3, :3] @ np.asarray(frame.center_mm) + inv[:3, 3])[:, None]])
         known = KnownOccupancy(frame.to_unit(cloud.occupancy_points).astype(np.float32), cloud.occupancy_inside,
-                               np.asarray(cloud.occupancy_distance_mm) / frame.half_extent_mm)
+                               np.asarray(cloud.occupancy_distance_mm) / frame.half_extent_mm, solid, unit_to_index)
     field = method.fit(frame.to_unit(cloud.points).astype(np.float32), device, progress=on_fit,
                        should_cancel=report.should_cancel, known=known, labels=cloud.labels)
     return field, frame
@@ -232,7 +239,7 @@ def run_pipeline(
     """
     from .io import load_point_cloud
     from .methods import build_fit_config
-    from .pointcloud import mask_band_samples, mask_boundary_cloud
+    from .pointcloud import mask_band_samples, mask_boundary_cloud, mask_signed_distance
     from .refine import point_weights_of, refinement_patches
 
     options = options or PipelineOptions()
@@ -277,10 +284,13 @@ def run_pipeline(
             if cloud.nifti_affine is not None:
                 # a label map's voxel centres fill the solid: fit (and score against) its boundary
                 lm = fit_config.label_map
+                voxels = cloud
                 if lm.band_voxels > 0:  # voxel centres near the boundary: occupancy the map states
                     cloud = mask_band_samples(cloud, width_voxels=lm.band_voxels, seed=options.seed)
                 cloud = mask_boundary_cloud(cloud, seed=options.seed, subvoxel_sigma_mm=lm.boundary_sigma_mm,
                                             between_labels=lm.between_labels)
+                if lm.solid_distance_cell_mm > 0:  # the map's solid, a warm start for the field
+                    cloud = mask_signed_distance(voxels, cloud, lm.solid_distance_cell_mm)
             reference, reference_name = _reference_for_metrics(options, cloud)
         with timed("fit"), ThreadPoolExecutor(max_workers=1, thread_name_prefix="ribpull-patches") as pool:
             refine_plan = _plan_refinement(cloud, fit_config, options)
@@ -393,6 +403,9 @@ def _plan_refinement(cloud, fit_config, options: PipelineOptions):
     planned = fit_config.method_config.schedule.iterations
     # the shorter schedule was measured for the preset's own method: another method keeps its own
     iterations = config.dense_fit_iterations if dense else config.fit_iterations
+    if cloud.solid_distance_mm is not None and config.label_map_fit_iterations is not None \
+            and getattr(getattr(fit_config.method_config, "field", None), "grid_solid_prior", 0) > 0:
+        iterations = config.label_map_fit_iterations  # a warm-started label map settles sooner
     if plan.applies and options.iterations is None and options.method is None \
             and iterations is not None and iterations < planned:
         fit_config.method_config = with_iterations(fit_config.method_config, iterations)

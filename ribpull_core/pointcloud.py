@@ -40,6 +40,10 @@ class PointCloud:
     occupancy_points: np.ndarray | None = None
     occupancy_inside: np.ndarray | None = None
     occupancy_distance_mm: np.ndarray | None = None
+    #: the solid a label map states, as a coarse signed distance volume (`mask_signed_distance`):
+    #: (X, Y, Z) float32 mm (negative inside) at the nodes of a grid with (4, 4) affine index -> mm
+    solid_distance_mm: np.ndarray | None = None
+    solid_distance_affine: np.ndarray | None = None
     #: a DICOM SEG input's references (ribpull_core.dicom.seg_read.SegSource): its points, affine and
     #: outputs are in the LPS patient frame, and the DICOM outputs reference its study and series
     dicom_source: object | None = None
@@ -159,7 +163,8 @@ def mask_boundary_cloud(cloud: PointCloud, max_points: int = 120_000, seed: int 
                       nifti_affine=cloud.nifti_affine, nifti_shape=cloud.nifti_shape,
                       label_names=dict(cloud.label_names), occupancy_points=cloud.occupancy_points,
                       occupancy_inside=cloud.occupancy_inside, occupancy_distance_mm=cloud.occupancy_distance_mm,
-                      dicom_source=cloud.dicom_source, boundary_smoothing_mm2=smoothing_mm2, face_axis=face_axes)
+                      dicom_source=cloud.dicom_source, boundary_smoothing_mm2=smoothing_mm2, face_axis=face_axes,
+                      solid_distance_mm=cloud.solid_distance_mm, solid_distance_affine=cloud.solid_distance_affine)
 
 
 def boundary_smoothing_time_mm2(sigma_mm: float, spacing_mm: np.ndarray) -> float:
@@ -231,6 +236,70 @@ def mask_band_samples(cloud: PointCloud, width_voxels: float = 2.0, max_samples:
     pts = transform_points((ijk + lo).astype(np.float64), np.asarray(cloud.nifti_affine, dtype=np.float64))
     return dataclasses.replace(cloud, occupancy_points=pts, occupancy_inside=inside.ravel()[flat],
                                occupancy_distance_mm=dist)
+
+
+def mask_signed_distance(voxels: PointCloud, boundary: PointCloud, cell_mm: float, pad_mm: float = 20.0,
+                         exact_cells: int = 2) -> PointCloud:
+    """The boundary cloud of a label map (`mask_boundary_cloud` of `voxels`) with the map's solid as
+    a coarse signed distance volume (`PointCloud.solid_distance_mm` and `solid_distance_affine`):
+    at every s-th voxel centre along each axis (s = cell_mm / the axis's spacing, rounded, at least
+    1), over the selected voxels' box plus pad_mm, the distance (mm) to the nearest boundary point,
+    negative at a selected voxel. Exact at the nodes within exact_cells cells of a boundary point;
+    every other node takes its distance to the nearest point of the nearest such node (a distance
+    transform's closest-node propagation, so an upper bound, ~0.2 mm long on average on the bench's
+    1.5 mm map at 3 mm cells, more far out).
+
+    Why: it is the map's own reading of the surface (the boundary points sit on its smoothed
+    0.5 level), a warm start for a field fitted to it (`GridOccupancyField.set_prior`): the
+    training then corrects a surface already within about a voxel instead of growing one from a
+    sphere. 0.2 s on that map against 0.9 s for kd-tree queries exact to 8 mm and 1.7 s more beyond."""
+    from scipy.spatial import cKDTree
+    from trimesh import transform_points, transformations
+
+    inside, _, lo = _mask_volume(voxels)
+    spacing = voxel_spacing_mm(voxels)
+    stride = np.maximum(1, np.round(cell_mm / spacing)).astype(int)
+    pad = np.ceil(pad_mm / (spacing * stride)).astype(int) * stride  # whole cells, so nodes stay centres
+    inside = np.pad(inside, [(int(p), int(p)) for p in pad])[::stride[0], ::stride[1], ::stride[2]]
+    affine = np.asarray(voxels.nifti_affine, dtype=np.float64) @ transformations.translation_matrix(lo - pad) \
+        @ np.diag([*stride.astype(np.float64), 1.0])
+    shape = inside.shape
+    nodes = transform_points(np.indices(shape).reshape(3, -1).T.astype(np.float64), affine)
+    pts = np.asarray(boundary.points, dtype=np.float64)
+    ijk = np.rint(transform_points(pts, np.linalg.inv(affine))).astype(np.int64)
+    ijk = np.clip(ijk, 0, np.asarray(shape) - 1)
+    near = np.zeros(shape, dtype=bool)
+    near[tuple(ijk.T)] = True
+    near = ndimage.binary_dilation(near, iterations=max(1, int(exact_cells)))
+    exact = np.flatnonzero(near)
+    nearest_point = np.zeros(len(nodes), dtype=np.int64)
+    nearest_point[exact] = cKDTree(pts).query(nodes[exact], k=1, workers=-1)[1]
+    source = ndimage.distance_transform_edt(~near, return_distances=False, return_indices=True)
+    source = np.ravel_multi_index(tuple(source), shape).ravel()
+    distance = np.linalg.norm(nodes - pts[nearest_point[source]], axis=1).reshape(shape)
+    sdf = np.where(inside, -distance, distance).astype(np.float32)
+    return dataclasses.replace(boundary, solid_distance_mm=sdf, solid_distance_affine=affine)
+
+
+def distance_to_points(points: np.ndarray, queries: np.ndarray, tree, exact_within: float,
+                       subsample: int = 16) -> np.ndarray:
+    """(M,) float32 distance from each of (M, 3) `queries` to the nearest of (N, 3) `points` (same
+    units; tree: their scipy cKDTree): exact up to `exact_within`, beyond it the distance to a fixed random
+    1-in-`subsample` of the points, which is longer by at most that subsample's spacing.
+
+    Why: a kd-tree's nearest search far from its points visits many leaves; the free-space points
+    anywhere outside are mostly far, and their exact distances took ~6 s of the set-up at 60k points
+    (~2.2 s this way, exact within 5 % of the extent), while their hinge margin only grows with the distance (`free_margin`)."""
+    from scipy.spatial import cKDTree
+
+    if len(queries) == 0:
+        return np.zeros(0, np.float32)
+    d = tree.query(queries, k=1, workers=-1, distance_upper_bound=exact_within)[0]
+    far = ~np.isfinite(d)
+    if far.any():
+        keep = np.random.default_rng(0).choice(len(points), max(1, len(points) // subsample), replace=False)
+        d[far] = cKDTree(points[keep]).query(queries[far], k=1, workers=-1)[0]
+    return d.astype(np.float32)
 
 
 def band_distances(inside: np.ndarray, spacing_mm: np.ndarray, reach_mm: float) -> tuple[np.ndarray, np.ndarray]:

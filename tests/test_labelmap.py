@@ -10,6 +10,7 @@ from ribpull_core.pointcloud import (
     band_distances,
     mask_band_samples,
     mask_boundary_cloud,
+    mask_signed_distance,
     voxel_spacing_mm,
 )
 
@@ -85,3 +86,23 @@ def test_subvoxel_boundary_is_closer_to_the_true_surface_than_the_staircase(spac
 def test_band_samples_survive_the_boundary_cloud():
     cloud = mask_boundary_cloud(mask_band_samples(sphere_mask_cloud()), max_points=10**9)
     assert cloud.occupancy_points is not None and len(cloud.occupancy_points) == len(cloud.occupancy_inside)
+
+
+@pytest.mark.parametrize("spacing", [(1.5, 1.5, 1.5), (0.75, 0.75, 2.5)])
+def test_signed_distance_prior_reads_the_ball_off_the_map(spacing):
+    from trimesh import transform_points
+
+    voxels = sphere_mask_cloud(spacing)
+    cloud = mask_signed_distance(voxels, mask_boundary_cloud(voxels, max_points=10**9, subvoxel_sigma_mm=1.0), cell_mm=3.0)
+    sdf, affine = cloud.solid_distance_mm, cloud.solid_distance_affine
+    stride = np.round(np.linalg.norm(affine[:3, :3], axis=0) / np.asarray(spacing)).astype(int)
+    assert np.array_equal(stride, np.maximum(1, np.round(3.0 / np.asarray(spacing))).astype(int))
+    nodes = transform_points(np.argwhere(np.ones(sdf.shape, bool)).astype(float), affine)  # mm
+    r = np.linalg.norm(nodes, axis=1)
+    truth = r - RADIUS_MM
+    near = np.abs(truth) < 4.0  # where the map (and the smoothing) can know the distance
+    err = np.abs(sdf.ravel()[near] - truth[near])
+    assert err.mean() < 0.5 * max(spacing) and err.max() < 1.5 * max(spacing), (err.mean(), err.max())
+    # the sign is the map's: negative deep inside, positive far outside; the grid reaches 20 mm out
+    assert (sdf.ravel()[truth < -3.0] < 0).all() and (sdf.ravel()[truth > 3.0] > 0).all()
+    assert r.max() > RADIUS_MM + 19.0

@@ -224,6 +224,10 @@ def test_refined_fit_length_follows_the_point_count_and_the_input_kind():
     iterations, neighbours, resolution = planned(label_map, dense_points=10_000)
     assert (iterations, resolution) == (400, preset_resolution)
     assert refine.min_neighbours <= neighbours < refine.max_neighbours
+    # a label map whose field starts from the map's own solid (the default's warm start) settles sooner
+    warm = dataclasses.replace(label_map, solid_distance_mm=np.zeros((2, 2, 2), np.float32),
+                               solid_distance_affine=np.eye(4))
+    assert planned(warm, dense_points=10_000)[0] == refine.label_map_fit_iterations < 400
     from scipy.spatial import cKDTree
 
     from ribpull_core.refine import patch_size

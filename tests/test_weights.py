@@ -67,3 +67,26 @@ def test_bad_or_missing_files_are_parse_errors(tmp_path):
     (tmp_path / "model.safetensors").write_bytes(b"garbage")
     with pytest.raises(RibPullInputError, match="safetensors"):
         load_field(tmp_path)
+
+
+def test_a_grid_field_with_a_solid_prior_round_trips_and_starts_as_that_solid(tmp_path):
+    from ribpull_core.fields.grid import GridOccupancyField
+
+    arch = {"name": "GridOccupancyField", "kwargs": {"n_levels": 4, "log2_table": 10, "max_resolution": 32,
+                                                     "hidden": 16, "prior_shape": [21, 21, 21]}}
+    module = GridOccupancyField(**arch["kwargs"])
+    # a ball of radius 0.3 (unit frame) on nodes at -0.5 .. 0.5: index = (x + 0.5) * 20
+    axis = np.linspace(-0.5, 0.5, 21)
+    x, y, z = np.meshgrid(axis, axis, axis, indexing="ij")
+    distance = (np.sqrt(x**2 + y**2 + z**2) - 0.3).astype(np.float32)
+    module.set_prior(distance, np.hstack([20.0 * np.eye(3), np.full((3, 1), 10.0)]))
+    field = FittedField(module.eval(), kind="occupancy", arch=arch, level=0.0, method="sparseocc", config={})
+    # an untrained decoder adds ~nothing: the field's zero set is the prior's sphere of radius 0.3
+    pts = np.random.default_rng(1).normal(size=(2000, 3))
+    pts *= np.random.default_rng(2).uniform(0.05, 0.45, (2000, 1)) / np.linalg.norm(pts, axis=1, keepdims=True)
+    u = field.evaluate(pts)["U"]
+    r = np.linalg.norm(pts, axis=1)
+    assert (u[r < 0.27] > 0).all() and (u[r > 0.33] < 0).all()
+    save_field(field, FRAME, tmp_path)
+    loaded, _, _ = load_field(tmp_path)
+    np.testing.assert_array_equal(loaded.evaluate(pts)["U"], u)

@@ -4,8 +4,10 @@ Why: the paper's 8x256 MLP costs ~458 ms per iteration on a 2-core CPU. A grid e
 the capacity in table look-ups, so a tiny decoder MLP suffices and an iteration costs a fraction of
 that. Tables are one `nn.Embedding` trained with fused dense Adam (`methods.optimizer`; on a CPU, coalescing sparse gradients
 costs more than updating the whole table); coarse levels whose grid fits in the table are indexed densely (no hash
-collisions). Output: 2 logits [out, in] like SparseOcc, plus a sphere prior (inside radius
-`init_radius`) so U has a usable gradient from the first iteration.
+collisions). Output: 2 logits [out, in] like SparseOcc, plus a prior so U has a usable gradient
+from the first iteration: a sphere (inside radius `init_radius`), or, when the input states its
+solid (a label map), that solid's signed distance (`prior_shape`, `set_prior`): a warm start whose
+zero set is already the map's surface, which the training only corrects.
 """
 
 from __future__ import annotations
@@ -41,10 +43,16 @@ class GridOccupancyField(nn.Module):
         domain: float = 1.2,
         init_radius: float = 0.5,
         prior_slope: float = 4.0,
+        prior_shape: tuple[int, int, int] | list[int] | None = None,
     ):
         super().__init__()
         self.n_levels, self.features, self.domain = n_levels, features, domain
         self.init_radius, self.prior_slope = init_radius, prior_slope
+        self.has_distance_prior = prior_shape is not None
+        if self.has_distance_prior:
+            # saved with the weights (persistent), so a loaded field has the same prior
+            self.register_buffer("prior_distance", torch.zeros((1, 1, *(int(n) for n in prior_shape))))
+            self.register_buffer("prior_to_grid", torch.zeros(3, 4))
         growth = math.exp((math.log(max_resolution) - math.log(base_resolution)) / max(1, n_levels - 1))
         res = [math.floor(base_resolution * growth**i) for i in range(n_levels)]
         table = 2**log2_table
@@ -140,6 +148,36 @@ class GridOccupancyField(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         logits = self.decoder(self.encode(x))
-        # sphere prior: in-logit minus out-logit ~ 2*slope*(r - |x|), so U starts as a smooth sphere
-        prior = self.prior_slope * (self.init_radius - x.norm(dim=-1, keepdim=True))
+        if self.has_distance_prior:
+            # in-logit minus out-logit ~ -2*slope*distance: U starts as the input's own solid
+            prior = -self.prior_slope * self.prior_signed_distance(x)
+        else:
+            # sphere prior: in-logit minus out-logit ~ 2*slope*(r - |x|), so U starts as a smooth sphere
+            prior = self.prior_slope * (self.init_radius - x.norm(dim=-1, keepdim=True))
         return logits + torch.cat([-prior, prior], dim=-1)
+
+    def set_prior(self, distance_unit: np.ndarray, unit_to_index: np.ndarray) -> None:
+        """Set the signed-distance prior (the module must be built with prior_shape = its shape).
+
+        distance_unit: (X, Y, Z) signed distance (unit-frame units, negative inside) at the nodes of
+        a grid; unit_to_index: (3, 4) affine from a unit-frame point to its (fractional) node index.
+        """
+        shape = tuple(self.prior_distance.shape[2:])
+        if tuple(distance_unit.shape) != shape:
+            raise ValueError(f"prior of shape {distance_unit.shape} for a field built for {shape}")
+        a = np.asarray(unit_to_index, dtype=np.float64)
+        # grid_sample wants coordinates in [-1, 1] (align_corners) ordered (Z, Y, X) of the volume
+        scale = 2.0 / np.maximum(np.asarray(shape, dtype=np.float64) - 1.0, 1.0)
+        to_grid = scale[:, None] * a
+        to_grid[:, 3] -= 1.0
+        with torch.no_grad():
+            self.prior_distance.copy_(torch.as_tensor(np.asarray(distance_unit, dtype=np.float32))[None, None])
+            self.prior_to_grid.copy_(torch.as_tensor(to_grid[::-1].copy(), dtype=torch.float32))
+
+    def prior_signed_distance(self, x: torch.Tensor) -> torch.Tensor:
+        """(B, 3) unit-frame points -> (B, 1) the prior's signed distance (trilinear; beyond its grid
+        the value at the nearest border node)."""
+        g = x @ self.prior_to_grid[:, :3].T + self.prior_to_grid[:, 3]
+        d = torch.nn.functional.grid_sample(self.prior_distance, g.view(1, -1, 1, 1, 3).to(self.prior_distance.dtype),
+                                            mode="bilinear", padding_mode="border", align_corners=True)
+        return d.view(-1, 1).to(x.dtype)

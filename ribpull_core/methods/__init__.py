@@ -56,7 +56,8 @@ class RunPreset:
 #: SDF has 64 voxels along the longest side (~5 mm on a ribcage, as coarse as its mesh): at 128 the
 #: volume was ~40% of a tiny smoke job (3.8 of 9.6 s, 4k points, 10 iterations).
 #: how default and smoke turn a label map into training data (build_fit_config copies it per fit)
-LABEL_MAP_DEFAULT = LabelMapConfig(boundary_sigma_mm=LABEL_MAP_SIGMA_MM, band_voxels=2.0, between_labels=True)
+LABEL_MAP_DEFAULT = LabelMapConfig(boundary_sigma_mm=LABEL_MAP_SIGMA_MM, band_voxels=2.0, between_labels=True,
+                                   solid_distance_cell_mm=3.0)
 RUN_PRESETS = {
     "default": RunPreset("sparseocc", 256, LABEL_MAP_DEFAULT, RefineConfig()),
     "paper": RunPreset("sparseocc", 256, LabelMapConfig(), None),

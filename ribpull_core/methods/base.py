@@ -110,11 +110,17 @@ class KnownOccupancy:
     """Points whose side of the surface the input states (a label map's voxel centres), unit frame.
 
     points: (M, 3); inside: (M,) bool; distance: (M,) distance to the nearest sample of the other
-    class (unit-frame units; the surface lies somewhere in between)."""
+    class (unit-frame units; the surface lies somewhere in between).
+
+    solid_distance / unit_to_index: the solid the input states as a signed distance volume
+    (X, Y, Z) (unit-frame units, negative inside) and the (3, 4) affine from a unit-frame point to
+    its fractional node index, or None (a warm start, `GridOccupancyField.set_prior`)."""
 
     points: np.ndarray
     inside: np.ndarray
     distance: np.ndarray
+    solid_distance: np.ndarray | None = None
+    unit_to_index: np.ndarray | None = None
 
 
 class Method(ABC):

@@ -34,7 +34,7 @@ from ..losses import (
     sampling_loss,
     sign_margin_loss,
 )
-from ..pointcloud import sampling_gap
+from ..pointcloud import distance_to_points, sampling_gap
 from ..quadrics import LocalQuadrics, fit_local_quadrics, pca_normals, project_onto_quadrics
 from .base import FittedField, KnownOccupancy, Method, knn_sigma, sample_pull_queries
 from .training import ScheduleConfig
@@ -51,7 +51,12 @@ class FieldConfig:
     grid_finest_cell_label_map: the same for label maps (inputs with known occupancy; 0: as points),
     whose boundary-face points sit on a staircase denser than the information in it;
     grid_lr_label_map: the tables' rate for label maps (0: grid_lr). grid_domain: the
-    grid covers [-grid_domain, grid_domain]^3 (unit frame)."""
+    grid covers [-grid_domain, grid_domain]^3 (unit frame). grid_solid_prior: when > 0 and the
+    input states its solid as a signed distance volume (a label map,
+    `LabelMapConfig.solid_distance_cell_mm`), the grid's prior is that solid instead of a sphere,
+    with this slope (`GridOccupancyField.set_prior`; U starts as tanh(-slope x the distance in
+    unit-frame units)): a warm start, the field's surface is the map's from the first step.
+    0: the sphere."""
 
     network: str = "mlp"
     mlp_hidden: int = 256
@@ -67,6 +72,7 @@ class FieldConfig:
     grid_finest_cell_label_map: float = 0.0
     grid_lr_label_map: float = 0.0
     grid_domain: float = 1.2
+    grid_solid_prior: float = 0.0
 
 
 @dataclass
@@ -249,7 +255,8 @@ def default_config() -> SparseOccConfig:
     benchmarks/gap_ab.py)."""
     return SparseOccConfig(
         field=FieldConfig(network="grid", grid_levels=8, grid_log2_table=18, grid_max_resolution=256, grid_lr=5e-3,
-                          grid_lr_label_map=2e-2, grid_finest_cell=1.0, grid_finest_cell_label_map=1.5),
+                          grid_lr_label_map=2e-2, grid_finest_cell=1.0, grid_finest_cell_label_map=1.5,
+                          grid_solid_prior=2.0),
         queries=QueryConfig(n_queries=400_000, scales=(0.5, 1.0, 2.0), batch_size=2048, jitter=(0.0, 0.0),
                             gradient="finite_difference", outlier_gap_factor=2.5, targets="quadric",
                             noisy_residual_mm=0.5),
@@ -452,25 +459,6 @@ def gap_points(points: np.ndarray, labels: np.ndarray, tree: cKDTree, max_gap: f
     return mid[keep].astype(np.float32), dist[keep, 0].astype(np.float32)
 
 
-def distance_to_points(points: np.ndarray, queries: np.ndarray, tree: cKDTree, exact_within: float,
-                       subsample: int = 16) -> np.ndarray:
-    """(M,) float32 distance from each of (M, 3) `queries` to the nearest of (N, 3) `points` (same
-    units; tree: their kd-tree): exact up to `exact_within`, beyond it the distance to a fixed random
-    1-in-`subsample` of the points, which is longer by at most that subsample's spacing.
-
-    Why: a kd-tree's nearest search far from its points visits many leaves; the free-space points
-    anywhere outside are mostly far, and their exact distances took ~6 s of the set-up at 60k points
-    (~2.2 s this way, exact within 5 % of the extent), while their hinge margin only grows with the distance (`free_margin`)."""
-    if len(queries) == 0:
-        return np.zeros(0, np.float32)
-    d = tree.query(queries, k=1, workers=-1, distance_upper_bound=exact_within)[0]
-    far = ~np.isfinite(d)
-    if far.any():
-        keep = np.random.default_rng(0).choice(len(points), max(1, len(points) // subsample), replace=False)
-        d[far] = cKDTree(points[keep]).query(queries[far], k=1, workers=-1)[0]
-    return d.astype(np.float32)
-
-
 def classification_level(u: np.ndarray, inside: np.ndarray) -> float:
     """The threshold t that makes {u > t} agree with the known labels `inside` (M,) bool at the most
     samples, u (M,) the field there; the midpoint between the two values around the best cut."""
@@ -577,7 +565,10 @@ class SparseOcc(Method):
     presets: ClassVar[dict] = {"paper": paper_config, "default": default_config, "smoke": smoke_config}
 
     def arch(self) -> dict:
-        return _arch(self.config.field, self.resolution)
+        arch = _arch(self.config.field, self.resolution)
+        if getattr(self, "solid_prior", None) is not None:
+            arch["kwargs"].update(prior_shape=list(self.solid_prior[0].shape), prior_slope=self.config.field.grid_solid_prior)
+        return arch
 
     def setup(self, points_unit: np.ndarray, device: torch.device, known: KnownOccupancy | None = None,
               labels: np.ndarray | None = None) -> None:
@@ -649,6 +640,11 @@ class SparseOcc(Method):
         # label maps (known occupancy) have their own gap weight when one is set
         self.gap_weight = s.gap_weight_label_map if self.known is not None and s.gap_weight_label_map > 0 \
             else s.gap_weight
+        # the solid the input states (a label map's) as the grid's prior: a warm start
+        self.solid_prior = None
+        if cfg.field.network == "grid" and cfg.field.grid_solid_prior > 0 and self.known is not None \
+                and known.solid_distance is not None:
+            self.solid_prior = (np.asarray(known.solid_distance, np.float32), np.asarray(known.unit_to_index))
         self.lo = torch.from_numpy(pts.min(0).astype(np.float32)).to(device) - 0.05
         self.hi = torch.from_numpy(pts.max(0).astype(np.float32)).to(device) + 0.05
         self.grid = cfg.field.network == "grid"
@@ -659,6 +655,8 @@ class SparseOcc(Method):
     def initialize(self, module: torch.nn.Module) -> None:
         if self.grid and self.config.queries.gradient == "finite_difference":
             self.fd_step = module.finest_cell  # differences over one finest cell
+        if self.solid_prior is not None:
+            module.set_prior(*self.solid_prior)
 
     def get_param_groups(self, module: torch.nn.Module) -> list[dict]:
         lr = self.config.schedule.lr
