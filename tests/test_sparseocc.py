@@ -31,7 +31,6 @@ from ribpull_core.methods.sparseocc import (
     gap_points,
     indicator_gradient,
     margin_and_gradient,
-    solid_space_labels,
     space_labels,
 )
 from ribpull_core.methods.training import with_schedule
@@ -125,26 +124,6 @@ def test_space_labels_on_a_sphere_are_right():
     assert (np.linalg.norm(lab.near_in, axis=1) < 0.5).mean() > 0.99
     assert (np.linalg.norm(lab.near_out, axis=1) > 0.5).mean() > 0.99
     assert 0 < lab.offset < 0.1
-
-
-def test_space_labels_read_off_a_stated_solid_agree_with_the_flood_fill():
-    pts = sphere_points(20_000, 0.5)
-    # the ball's signed distance on nodes 0.02 apart over [-0.8, 0.8]^3: index = (x + 0.8) / 0.02
-    axis = np.linspace(-0.8, 0.8, 81)
-    x, y, z = np.meshgrid(axis, axis, axis, indexing="ij")
-    solid = (np.sqrt(x**2 + y**2 + z**2) - 0.5).astype(np.float32)
-    unit_to_index = np.hstack([50.0 * np.eye(3), np.full((3, 1), 40.0)])
-    lab = solid_space_labels(pts, solid, unit_to_index, np.random.default_rng(0), n_free=20_000)
-    flood = space_labels(pts, np.random.default_rng(0), n_free=20_000)
-    r = np.linalg.norm(lab.free, axis=1)
-    assert len(lab.free) > 0.9 * 20_000 and (r > 0.5).all()  # free space is never inside
-    # half of it near the shell, as the flood fill's; the distances are the ball's
-    assert abs(np.median(r) - np.median(np.linalg.norm(flood.free, axis=1))) < 0.05
-    np.testing.assert_allclose(lab.free_distance, r - 0.5, atol=2e-3)
-    # the same offset, and every normal turned outward
-    assert lab.offset == flood.offset
-    assert (np.einsum("ij,ij->i", lab.normals, pts) > 0).all()
-    assert (np.linalg.norm(lab.near_in, axis=1) < 0.5).all() and (np.linalg.norm(lab.near_out, axis=1) > 0.5).all()
 
 
 def test_indicator_gradient_is_the_interpolated_volume_gradient_away_from_the_border():

@@ -161,9 +161,7 @@ class SignConfig:
     "quadric" (each point projected onto its own eq. 1 target patch, which averages the noise of
     its neighbours: a noisy point's "inside" hinge otherwise often lies outside the true surface
     and pushes a bump out) or "quadric_when_noisy" (only on inputs QueryConfig judges noisy);
-    label maps always use their points. space_from_solid: where the field starts from a solid the
-    input states (`FieldConfig.grid_solid_prior`), the free space and the near-surface normals'
-    sides are read off that solid (`solid_space_labels`) instead of a flood fill. 6 mm: at 60k points
+    label maps always use their points. 6 mm: at 60k points
     no rib point of the sternum phantom's L6 lies within 4.3 mm of a cartilage point across its
     2.9 mm tip gap, and at a 4 mm reach L6, R6 and R8 stayed merged (17 of 20 isolated); at 5 mm
     R6 (2.5 mm tip gap) stayed merged in the sweep at 2480e20 and in 2 of 2 runs after it (19 of
@@ -184,7 +182,6 @@ class SignConfig:
     gap_max_mm: float = 6.0
     gap_weight_label_map: float = 0.0
     near_surface_centres: str = "points"
-    space_from_solid: bool = False
 
 
 @dataclass
@@ -397,65 +394,6 @@ def space_labels(points_unit: np.ndarray, rng: np.random.Generator, n_free: int 
                        (points_unit + offset * normals).astype(np.float32), spacing, offset, normals)
 
 
-def solid_space_labels(points_unit: np.ndarray, solid_distance: np.ndarray, unit_to_index: np.ndarray,
-                       rng: np.random.Generator, n_free: int = 400_000, offset_fraction: float = 0.5,
-                       tree: cKDTree | None = None, gap: float | None = None,
-                       max_offset: float | None = None) -> SpaceLabels:
-    """`space_labels` read off a solid the input states (a label map's signed distance volume,
-    (X, Y, Z) unit-frame units, negative inside, and its (3, 4) unit -> node index affine) instead
-    of a flood fill of the points: the same near-surface pairs, along PCA normals (k = 16) turned to
-    the side where the distance grows, and about the same pools of free space: half within 8
-    flood-fill voxels of the blocking shell (off the points along those normals), half anywhere
-    outside it in the same box (the volume's nodes, jittered), each with its distance to the points
-    (near: exact; far: the volume's, trilinear).
-
-    Why: on a label map the flood fill (a 17M-voxel volume), its smoothed indicator and the
-    free points' kd-tree distances were ~3 of the set-up's ~5 s, to find out what the map states."""
-    tree = tree if tree is not None else cKDTree(points_unit)
-    block = gap if gap is not None else sampling_gap(points_unit, tree=tree)
-    lo, hi = points_unit.min(0), points_unit.max(0)
-    spacing = max(block / 2.0, float((hi - lo).max() + 8 * block) / 384)  # outside_mask's voxel
-    a = np.asarray(unit_to_index, dtype=np.float64)
-    index_to_unit = np.linalg.inv(np.vstack([a, [0.0, 0.0, 0.0, 1.0]]))[:3]
-    vol = np.asarray(solid_distance, dtype=np.float32)
-    cell = np.linalg.norm(index_to_unit[:, :3], axis=0)  # (3,) a node step along each axis, unit frame
-    normals = pca_normals(points_unit, 16, tree)
-    coords = (points_unit @ a[:, :3].T + a[:, 3]).T
-    outward = indicator_gradient(vol, coords) @ a[:, :3]  # the distance's gradient, unit frame
-    normals[np.einsum("ij,ij->i", normals, outward) < 0] *= -1
-    # near the surface (the flood fill's first pool): off the input points along their outward
-    # normals, block .. block + 8 flood-fill voxels out, kept where every input point is still
-    # farther than block and the solid says outside (a step across a narrow gap into the next
-    # structure), with that exact distance
-    band = 8 * spacing
-    src = rng.integers(0, len(points_unit), n_free)
-    near = points_unit[src] + (block + band * rng.random(n_free))[:, None] * normals[src]
-    near_d = tree.query(near, k=1, workers=-1, distance_upper_bound=block + band + 1e-9)[0]
-    on_side = ndimage.map_coordinates(vol, (near @ a[:, :3].T + a[:, 3]).T, order=1, mode="nearest") > 0
-    keep = np.flatnonzero(np.isfinite(near_d) & (near_d > block) & on_side)[: n_free // 2]
-    # anywhere outside (the second pool): the volume's nodes beyond the shell in the flood fill's
-    # box, jittered, but never farther than a node's distance beyond the shell: a point within r of
-    # the node lies more than its distance - r from every input point
-    nodes = np.flatnonzero(vol.ravel() > block)
-    node_unit = np.stack(np.unravel_index(nodes, vol.shape), 1) @ index_to_unit[:, :3].T + index_to_unit[:, 3]
-    nodes = nodes[np.all((node_unit >= lo - 3 * block) & (node_unit <= hi + 3 * block), axis=1)]
-    far, far_d = np.zeros((0, 3)), np.zeros(0)
-    if len(nodes):
-        pick = nodes[rng.integers(0, len(nodes), n_free - len(keep))]
-        ijk = np.stack(np.unravel_index(pick, vol.shape), 1).astype(np.float64)
-        reach = (vol.ravel()[pick] - block)[:, None] / (np.sqrt(3.0) * cell)
-        ijk += np.minimum(0.5, reach) * (2.0 * rng.random(ijk.shape) - 1.0)
-        far = ijk @ index_to_unit[:, :3].T + index_to_unit[:, 3]
-        far_d = np.maximum(ndimage.map_coordinates(vol, ijk.T, order=1, mode="nearest"), block)
-    free_pts = np.concatenate([near[keep], far]).astype(np.float32)
-    free_d = np.concatenate([near_d[keep], far_d]).astype(np.float32)
-    offset = offset_fraction * 2 * spacing
-    if max_offset is not None:
-        offset = min(offset, max_offset)
-    return SpaceLabels(free_pts, free_d, (points_unit - offset * normals).astype(np.float32),
-                       (points_unit + offset * normals).astype(np.float32), spacing, offset, normals)
-
-
 def nearest_other_structure(points: np.ndarray, labels: np.ndarray, max_gap: float) -> np.ndarray:
     """(M, 2) index pairs (i, j): each point i of (N, 3) `points` with its nearest point j of another
     structure (labels (N,)) when that is at most max_gap away (the points' units); each pair once.
@@ -656,21 +594,12 @@ class SparseOcc(Method):
             raise ValueError(f"unknown near_surface_centres {s.near_surface_centres!r}: "
                              "'points', 'quadric' or 'quadric_when_noisy'")
         self.free = self.near = self.gap = None
-        # the solid the input states (a label map's): the grid's prior (a warm start) and its free space
-        self.solid_prior = None
-        if cfg.field.network == "grid" and cfg.field.grid_solid_prior > 0 and known is not None \
-                and known.solid_distance is not None and s.known_weight > 0:
-            self.solid_prior = (np.asarray(known.solid_distance, np.float32), np.asarray(known.unit_to_index))
         labels = None
         if s.free_space_weight > 0 or s.near_surface_weight > 0:
             max_offset = s.near_surface_offset_max_mm / self.unit_mm \
                 if s.near_surface_offset_max_mm > 0 and self.unit_mm else None
-            if self.solid_prior is not None and s.space_from_solid:
-                labels = solid_space_labels(pts, *self.solid_prior, rng, offset_fraction=s.near_surface_offset,
-                                            tree=tree, gap=gap, max_offset=max_offset)
-            else:
-                labels = space_labels(pts, rng, offset_fraction=s.near_surface_offset, tree=tree, gap=gap,
-                                      max_offset=max_offset)
+            labels = space_labels(pts, rng, offset_fraction=s.near_surface_offset, tree=tree, gap=gap,
+                                  max_offset=max_offset)
             if s.free_space_weight > 0 and len(labels.free):
                 self.free = torch.from_numpy(labels.free).to(device)
                 # hinge margins: half the distance to the data (capped) and half the normal offset
@@ -708,6 +637,11 @@ class SparseOcc(Method):
             first_ring = float(np.min(known.distance))
             margin = 0.5 * np.maximum(np.asarray(known.distance) - first_ring, 0.0)
             self.known_margin = torch.from_numpy(margin.astype(np.float32)).to(device)
+        # the solid the input states (a label map's) as the grid's prior: a warm start
+        self.solid_prior = None
+        if cfg.field.network == "grid" and cfg.field.grid_solid_prior > 0 and self.known is not None \
+                and known.solid_distance is not None:
+            self.solid_prior = (np.asarray(known.solid_distance, np.float32), np.asarray(known.unit_to_index))
         # label maps (known occupancy) have their own gap weight when one is set
         self.gap_weight = s.gap_weight_label_map if self.known is not None and s.gap_weight_label_map > 0 \
             else s.gap_weight
