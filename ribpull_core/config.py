@@ -124,7 +124,10 @@ class RefineConfig:
     1M samples, benchmarks/refine_ab.py, 2026-12-03). Label maps keep fit_iterations (their
     boundary points number ~100k) unless label_map_fit_iterations is set.
     label_map_fit_iterations: a label map whose field starts from the map's own solid
-    (`FieldConfig.grid_solid_prior`) is fitted for at most this many instead (None: fit_iterations).
+    (`FieldConfig.grid_solid_prior`) is fitted for at most this many instead (None: fit_iterations):
+    the training then corrects a surface already within about a voxel. On the sternum map, HD at
+    seeds 0 / 1 / 2 the same at 150 as from the sphere at 400 (1.03 / 1.14 / 1.01 mm; 200: 1.16 /
+    1.13 / 1.11); from the sphere, 200 iterations left 2.46 mm (`sparseocc.default_config`).
     dense_mesh_resolution: such dense point clouds, when refined, are meshed at (at least) this
     many cells instead of the preset's: the refined vertices lie on the patches, and between them
     the flat triangles cut a rib's curvature (a 1.2 mm edge on a 4 mm radius: ~0.05 mm): at 200k /

@@ -328,20 +328,25 @@ def signed_distance_volume(
         raise JobCanceled("canceled")
     band = 1.5 * float(np.linalg.norm(spacing))
     on_nodes = _voxels_on_nodes(shape, affine, dist)
-    if on_nodes is not None:  # an axis-aligned volume on the closest-point grid: one grid pass
-        absd = dist.node_distances()[np.ix_(*on_nodes)].astype(np.float32).ravel()
+    axis_aligned = not np.any(affine[:3, :3] - np.diag(np.diag(affine[:3, :3])))
+    outbox = None
+    if axis_aligned:  # outside the mesh's box along any axis: from the axes' coordinates alone
         lo, hi = dist.bounds_mm
         ob = [(x < lo[k]) | (x > hi[k]) for k, x in enumerate(_axis_coords(shape, affine))]
         outbox = (ob[0][:, None, None] | ob[1][None, :, None] | ob[2][None, None, :]).ravel()
+    if on_nodes is not None:  # an axis-aligned volume on the closest-point grid: one grid pass
+        absd = dist.node_distances()[np.ix_(*on_nodes)].astype(np.float32).ravel()
     else:
         absd = np.empty(n, dtype=np.float32)
-        outbox = np.empty(n, dtype=bool)
+        outbox_chunks = np.empty(n, dtype=bool) if outbox is None else None
         for s in range(0, n, CHUNK):
             if should_cancel is not None and should_cancel():
                 raise JobCanceled("canceled")
             p = voxel_centers_mm(shape, affine, s, min(n, s + CHUNK))
             absd[s : s + len(p)] = dist(p)
-            outbox[s : s + len(p)] = dist.outside_bounds(p)
+            if outbox_chunks is not None:
+                outbox_chunks[s : s + len(p)] = dist.outside_bounds(p)
+        outbox = outbox if outbox is not None else outbox_chunks
     inside = np.zeros(n, dtype=bool)
     level = float(field.level)
 

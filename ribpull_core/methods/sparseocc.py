@@ -251,6 +251,16 @@ def default_config() -> SparseOccConfig:
     Sternum map, HD measured to the true surface (1M samples), seeds 0 / 1 / 2: 1.32 / 1.40 / 1.30
     mm (MeshLab on the 4d401ed fits) -> 1.03 / 1.14 / 1.01 mm (`ribpull bench` at b0cecc7;
     mc_taubin 1.06 / 1.30 / 1.05), all 20 separable ribs isolated (17 of 20 with no gap hinge).
+    A label map's field starts from the map's own solid instead of a sphere (`grid_solid_prior`,
+    slope 2, on the signed distance of its boundary points at 3 mm nodes,
+    `pointcloud.mask_signed_distance`), so it is fitted for 150 iterations instead of 400
+    (`RefineConfig.label_map_fit_iterations`). Sternum map, CD-L1 / HD mm (1M samples, /tmp
+    harness over benchmarks/abkit.py, 2026-12-07), seeds 0 / 1 / 2: 400 iterations from the sphere
+    0.096 / 1.03, 0.093 / 1.14, 0.096 / 1.01 (`ribpull bench` at b0cecc7); 150 from the map's solid
+    0.096 / 1.03, 0.094 / 1.14, 0.096 / 1.01; 200 from the sphere 0.097 / 2.46 at seed 0, 120 from it 0.198 / 9.26
+    and 6 of 20 ribs isolated. Slope 1 / 4 at seed 0: HD 1.16 / 1.34 mm (4 at full voxel resolution;
+    at 3 mm nodes and 200 iterations 2.73). The 1.5 mm map 0.091 / 0.82 and the 0.75 x 0.75 x 2.5 mm
+    map 0.090 / 1.07 at seed 0 (0.091 / 0.83, 0.089 / 1.10 from the sphere at 400).
     Measured in docs/benchmarks.md (benchmarks/pull_targets_ab.py, benchmarks/offset_cap_ab.py,
     benchmarks/gap_ab.py)."""
     return SparseOccConfig(
