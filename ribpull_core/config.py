@@ -123,8 +123,9 @@ class RefineConfig:
     CD-L1 0.2272 against 0.2275 (0 / 1 mm noise: CD-L1 0.2056 / 0.3945 against 0.2055 / 0.3941;
     1M samples, benchmarks/refine_ab.py, 2026-12-03). Label maps keep fit_iterations (their
     boundary points number ~100k) unless label_map_fit_iterations is set.
-    label_map_fit_iterations: a label map whose field starts from the map's own solid
-    (`FieldConfig.grid_solid_prior`) is fitted for at most this many instead (None: fit_iterations):
+    label_map_fit_iterations: a label map whose solid the load stage measured
+    (`LabelMapConfig.solid_distance_cell_mm`; the preset's method then starts its field from it,
+    `FieldConfig.grid_solid_prior`) is fitted for at most this many instead (None: fit_iterations):
     the training then corrects a surface already within about a voxel. On the sternum map, HD at
     seeds 0 / 1 / 2 the same at 150 as from the sphere at 400 (1.03 / 1.14 / 1.01 mm; 200: 1.16 /
     1.13 / 1.11); from the sphere, 200 iterations left 2.46 mm (`sparseocc.default_config`).

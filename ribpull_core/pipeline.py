@@ -214,9 +214,9 @@ def fit_field(cloud, fit_config, device, report: _Reporter):
         if cloud.solid_distance_mm is not None:  # in the unit frame: distances / half extent, and
             # index = A^-1 (x_unit * half_extent + centre) for the volume's affine A (index -> mm)
             solid = np.asarray(cloud.solid_distance_mm, np.float32) / np.float32(frame.half_extent_mm)
-            inv = np.linalg.inv(np.asarray(cloud.solid_distance_affine, dtype=np.float64))
-            unit_to_index = np.hstack([inv[:3, :3] * frame.half_extent_mm,
-                                       (inv[:3, :3] @ np.asarray(frame.center_mm) + inv[:3, 3])[:, None]])
+            unit_to_mm = np.diag([frame.half_extent_mm] * 3 + [1.0])
+            unit_to_mm[:3, 3] = frame.center_mm
+            unit_to_index = (np.linalg.inv(np.asarray(cloud.solid_distance_affine, dtype=np.float64)) @ unit_to_mm)[:3]
         known = KnownOccupancy(frame.to_unit(cloud.occupancy_points).astype(np.float32), cloud.occupancy_inside,
                                np.asarray(cloud.occupancy_distance_mm) / frame.half_extent_mm, solid, unit_to_index)
     field = method.fit(frame.to_unit(cloud.points).astype(np.float32), device, progress=on_fit,
@@ -403,9 +403,8 @@ def _plan_refinement(cloud, fit_config, options: PipelineOptions):
     planned = fit_config.method_config.schedule.iterations
     # the shorter schedule was measured for the preset's own method: another method keeps its own
     iterations = config.dense_fit_iterations if dense else config.fit_iterations
-    if cloud.solid_distance_mm is not None and config.label_map_fit_iterations is not None \
-            and getattr(getattr(fit_config.method_config, "field", None), "grid_solid_prior", 0) > 0:
-        iterations = config.label_map_fit_iterations  # a warm-started label map settles sooner
+    if cloud.solid_distance_mm is not None and config.label_map_fit_iterations is not None:
+        iterations = config.label_map_fit_iterations  # a label map that states its solid settles sooner
     if plan.applies and options.iterations is None and options.method is None \
             and iterations is not None and iterations < planned:
         fit_config.method_config = with_iterations(fit_config.method_config, iterations)

@@ -328,25 +328,24 @@ def signed_distance_volume(
         raise JobCanceled("canceled")
     band = 1.5 * float(np.linalg.norm(spacing))
     on_nodes = _voxels_on_nodes(shape, affine, dist)
-    axis_aligned = not np.any(affine[:3, :3] - np.diag(np.diag(affine[:3, :3])))
-    outbox = None
-    if axis_aligned:  # outside the mesh's box along any axis: from the axes' coordinates alone
+    aligned = _axis_aligned(affine)
+    if aligned:  # outside the mesh's box along any axis: from the axes' coordinates alone
         lo, hi = dist.bounds_mm
         ob = [(x < lo[k]) | (x > hi[k]) for k, x in enumerate(_axis_coords(shape, affine))]
         outbox = (ob[0][:, None, None] | ob[1][None, :, None] | ob[2][None, None, :]).ravel()
+    else:
+        outbox = np.empty(n, dtype=bool)
     if on_nodes is not None:  # an axis-aligned volume on the closest-point grid: one grid pass
         absd = dist.node_distances()[np.ix_(*on_nodes)].astype(np.float32).ravel()
     else:
         absd = np.empty(n, dtype=np.float32)
-        outbox_chunks = np.empty(n, dtype=bool) if outbox is None else None
         for s in range(0, n, CHUNK):
             if should_cancel is not None and should_cancel():
                 raise JobCanceled("canceled")
             p = voxel_centers_mm(shape, affine, s, min(n, s + CHUNK))
             absd[s : s + len(p)] = dist(p)
-            if outbox_chunks is not None:
-                outbox_chunks[s : s + len(p)] = dist.outside_bounds(p)
-        outbox = outbox if outbox is not None else outbox_chunks
+            if not aligned:
+                outbox[s : s + len(p)] = dist.outside_bounds(p)
     inside = np.zeros(n, dtype=bool)
     level = float(field.level)
 
@@ -387,6 +386,12 @@ def signed_distance_volume(
     return sdf.reshape(shape)
 
 
+def _axis_aligned(affine: np.ndarray) -> bool:
+    """Whether a (4, 4) voxel -> mm affine is diagonal in its (3, 3) part (no rotation or shear)."""
+    a = np.asarray(affine, dtype=np.float64)[:3, :3]
+    return not np.any(a - np.diag(np.diag(a)))
+
+
 def _axis_coords(shape, affine: np.ndarray) -> list[np.ndarray]:
     """Per-axis voxel centre coordinates (mm) of an axis-aligned (diagonal) affine."""
     return [affine[k, 3] + affine[k, k] * np.arange(shape[k]) for k in range(3)]
@@ -395,8 +400,7 @@ def _axis_coords(shape, affine: np.ndarray) -> list[np.ndarray]:
 def _voxels_on_nodes(shape, affine: np.ndarray, dist: SurfaceDistance):
     """For an axis-aligned affine whose voxel centres are all nodes of dist's grid: the node index
     per voxel along each axis ([(n0,), (n1,), (n2,)]); else None."""
-    a = np.asarray(affine, dtype=np.float64)[:3, :3]
-    if np.any(a - np.diag(np.diag(a))):
+    if not _axis_aligned(affine):
         return None
     out = []
     for k, x in enumerate(_axis_coords(shape, affine)):

@@ -576,7 +576,7 @@ class SparseOcc(Method):
 
     def arch(self) -> dict:
         arch = _arch(self.config.field, self.resolution)
-        if getattr(self, "solid_prior", None) is not None:
+        if self.solid_prior is not None:
             arch["kwargs"].update(prior_shape=list(self.solid_prior[0].shape), prior_slope=self.config.field.grid_solid_prior)
         return arch
 
@@ -647,17 +647,16 @@ class SparseOcc(Method):
             first_ring = float(np.min(known.distance))
             margin = 0.5 * np.maximum(np.asarray(known.distance) - first_ring, 0.0)
             self.known_margin = torch.from_numpy(margin.astype(np.float32)).to(device)
+        self.grid = cfg.field.network == "grid"
         # the solid the input states (a label map's) as the grid's prior: a warm start
         self.solid_prior = None
-        if cfg.field.network == "grid" and cfg.field.grid_solid_prior > 0 and self.known is not None \
-                and known.solid_distance is not None:
+        if self.grid and cfg.field.grid_solid_prior > 0 and self.known is not None and known.solid_distance is not None:
             self.solid_prior = (np.asarray(known.solid_distance, np.float32), np.asarray(known.unit_to_index))
         # label maps (known occupancy) have their own gap weight when one is set
         self.gap_weight = s.gap_weight_label_map if self.known is not None and s.gap_weight_label_map > 0 \
             else s.gap_weight
         self.lo = torch.from_numpy(pts.min(0).astype(np.float32)).to(device) - 0.05
         self.hi = torch.from_numpy(pts.max(0).astype(np.float32)).to(device) + 0.05
-        self.grid = cfg.field.network == "grid"
         self.resolution = field_resolution(cfg.field, gap, self.known is not None) if self.grid else None
         self.fd_step = cfg.queries.fd_step
         self.gen = torch.Generator(device=device).manual_seed(cfg.seed)
