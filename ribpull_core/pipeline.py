@@ -386,9 +386,13 @@ def _plan_refinement(cloud, fit_config, options: PipelineOptions):
     an iteration count or another method (fit_config is changed in place). A point cloud of more than
     refine.dense_points points is planned with dense_max_neighbours and dense_fit_iterations, and is
     meshed at dense_mesh_resolution cells unless the options name a resolution. A label map's
-    patches reach refine.label_map_radius_voxels of its largest voxel edge."""
-    from .methods import with_iterations
-    from .pointcloud import voxel_spacing_mm
+    patches reach refine.label_map_radius_voxels of its largest voxel edge. A field that starts
+    from a solid is fitted for warm_fit_iterations: a label map's (the load stage measured it) or,
+    for a point cloud of at most dense_points points whose sampling gap is at most
+    flood_prior_max_gap_mm, the one its flood fill encloses where the method trusts it (the
+    method's config is set to start from it, `methods.with_flood_prior`)."""
+    from .methods import with_flood_prior, with_iterations
+    from .pointcloud import sampling_gap, voxel_spacing_mm
     from .refine import plan_refinement
 
     config = fit_config.refine
@@ -402,11 +406,17 @@ def _plan_refinement(cloud, fit_config, options: PipelineOptions):
     plan = plan_refinement(cloud.points, config)
     planned = fit_config.method_config.schedule.iterations
     # the shorter schedule was measured for the preset's own method: another method keeps its own
+    own = plan.applies and options.iterations is None and options.method is None
     iterations = config.dense_fit_iterations if dense else config.fit_iterations
-    if cloud.solid_distance_mm is not None and config.label_map_fit_iterations is not None:
-        iterations = config.label_map_fit_iterations  # a label map that states its solid settles sooner
-    if plan.applies and options.iterations is None and options.method is None \
-            and iterations is not None and iterations < planned:
+    if cloud.solid_distance_mm is not None and config.warm_fit_iterations is not None:
+        iterations = config.warm_fit_iterations  # a field that starts from the map's solid settles sooner
+    # a dense enough point cloud may start from its flood fill's solid (the method judges whether
+    # it trusts that flood fill, and then shortens its own schedule)
+    if own and cloud.nifti_affine is None and not dense and config.flood_prior_cell_mm > 0 \
+            and sampling_gap(cloud.points) <= config.flood_prior_max_gap_mm:
+        fit_config.method_config = with_flood_prior(fit_config.method_config, config.flood_prior_cell_mm,
+                                                    config.warm_fit_iterations)
+    if own and iterations is not None and iterations < planned:
         fit_config.method_config = with_iterations(fit_config.method_config, iterations)
     # the finer mesh pays off only where its vertices are moved onto the patches
     if plan.applies and dense and options.resolution is None and config.dense_mesh_resolution:
@@ -515,7 +525,9 @@ def _metrics(cloud, reference, reference_name, mesh, field, frame, fit_config, s
         "method": fit_config.method,
         "preset": fit_config.preset,
         "iterations_run": field.iterations_run,
-        "iterations_planned": getattr(fit_config.method_config, "iterations", None),
+        # the method's own schedule: a warm start may have shortened the configured one
+        "iterations_planned": (field.config.get("schedule") or {}).get("iterations",
+                                                                        getattr(fit_config.method_config, "iterations", None)),
         "fit_seconds": round(field.fit_seconds, 3),
         "loss_terms": {k: round(v, 6) for k, v in field.loss_terms.items()},
         "surface_level": field.level,

@@ -202,17 +202,28 @@ def test_refined_fit_length_follows_the_point_count_and_the_input_kind():
     # mm, dense: refined, and ~90 points within the 4 mm patch radius (so the neighbour cap decides k)
     sphere = PointCloud(points=30.0 * v / np.linalg.norm(v, axis=1, keepdims=True))
 
-    def planned(cloud, dense_points, **options):
+    flood_cells = []
+
+    def planned(cloud, dense_points, max_gap_mm=None, **options):
         config = build_fit_config("default")
         config.refine = dataclasses.replace(config.refine, dense_points=dense_points)
+        if max_gap_mm is not None:
+            config.refine = dataclasses.replace(config.refine, flood_prior_max_gap_mm=max_gap_mm)
         plan = _plan_refinement(cloud, config, PipelineOptions(**options))
         assert plan.applies
+        field = config.method_config.field
+        flood_cells.append((field.grid_flood_prior_cell_mm, field.grid_flood_prior_iterations))
         return config.method_config.schedule.iterations, plan.neighbours, config.mesh.resolution
 
     defaults = build_fit_config("default")
     refine, preset_resolution = defaults.refine, defaults.mesh.resolution
     # fewer points than dense_points: the short fit, patches of at most max_neighbours, the preset's mesh
     assert planned(sphere, dense_points=100_000) == (400, refine.max_neighbours, preset_resolution)
+    # ... and, its sampling gap (~1 mm) being under flood_prior_max_gap_mm, the method may start from
+    # its flood fill's solid and then fit warm_fit_iterations (the method judges the flood fill)
+    assert flood_cells[-1] == (refine.flood_prior_cell_mm, refine.warm_fit_iterations) and refine.flood_prior_cell_mm > 0
+    planned(sphere, dense_points=100_000, max_gap_mm=0.5)  # too sparse a cloud for its flood fill: the sphere
+    assert flood_cells[-1] == (0.0, None)
     # a dense point cloud is fitted longer, averages over larger patches and is meshed finer
     assert planned(sphere, dense_points=10_000) == (800, refine.dense_max_neighbours, refine.dense_mesh_resolution)
     assert refine.dense_max_neighbours > refine.max_neighbours and refine.dense_mesh_resolution > preset_resolution
@@ -227,7 +238,7 @@ def test_refined_fit_length_follows_the_point_count_and_the_input_kind():
     # a label map whose field starts from the map's own solid (the default's warm start) settles sooner
     warm = dataclasses.replace(label_map, solid_distance_mm=np.zeros((2, 2, 2), np.float32),
                                solid_distance_affine=np.eye(4))
-    assert planned(warm, dense_points=10_000)[0] == refine.label_map_fit_iterations < 400
+    assert planned(warm, dense_points=10_000)[0] == refine.warm_fit_iterations < 400
     from scipy.spatial import cKDTree
 
     from ribpull_core.refine import patch_size

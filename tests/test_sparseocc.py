@@ -28,6 +28,7 @@ from ribpull_core.methods.base import sample_pull_queries, warmup_cosine_lr
 from ribpull_core.methods.sparseocc import (
     SparseOcc,
     distance_to_points,
+    flood_fill_solid,
     gap_points,
     indicator_gradient,
     margin_and_gradient,
@@ -124,6 +125,51 @@ def test_space_labels_on_a_sphere_are_right():
     assert (np.linalg.norm(lab.near_in, axis=1) < 0.5).mean() > 0.99
     assert (np.linalg.norm(lab.near_out, axis=1) > 0.5).mean() > 0.99
     assert 0 < lab.offset < 0.1
+
+
+def test_flood_fill_solid_of_a_hollow_shell_is_its_signed_distance():
+    # a shell of radius 0.5 around a cavity: the flood fill reaches the outside, never the cavity,
+    # and the shell's own nodes take the side of their nearest point's oriented normal
+    pts = sphere_points(20_000, 0.5)
+    lab = space_labels(pts, np.random.default_rng(0), n_free=2000)
+    volume, unit_to_index = flood_fill_solid(pts, lab, cell=0.05)
+    index_to_unit = np.linalg.inv(np.vstack([unit_to_index, [0, 0, 0, 1]]))
+    nodes = np.indices(volume.shape).reshape(3, -1).T @ index_to_unit[:3, :3].T + index_to_unit[:3, 3]
+    r = np.linalg.norm(nodes, axis=1)
+    truth = r - 0.5
+    d = volume.ravel()
+    near = np.abs(truth) < 0.1  # exact there: the distance to the points, which sample the sphere ~0.007 apart
+    assert np.abs(d[near] - truth[near]).max() < 0.02
+    away = np.abs(truth) > 0.02  # the sign is right everywhere off the surface, cavity included
+    assert (np.sign(d[away]) == np.sign(truth[away])).all()
+    assert (d[r < 0.3] < -0.15).all() and volume.shape[0] >= 20
+    # a field built on it starts with that sphere as its zero level
+    field = GridOccupancyField(n_levels=2, log2_table=10, base_resolution=4, max_resolution=8, hidden=8,
+                               prior_slope=2.0, prior_shape=volume.shape)
+    field.set_prior(volume, unit_to_index)
+    x = torch.tensor([[0.0, 0.0, 0.2], [0.0, 0.45, 0.0], [0.55, 0.0, 0.0], [0.0, 0.0, -0.8]])
+    assert (torch.sign(field.prior_signed_distance(x).ravel()) == torch.tensor([-1.0, -1.0, 1.0, 1.0])).all()
+
+
+def test_flood_fill_warm_start_is_taken_on_clean_points_only_and_shortens_the_fit():
+    config = SparseOcc.presets["smoke"]()
+    config = dataclasses.replace(config, field=dataclasses.replace(
+        config.field, grid_flood_prior_cell_mm=3.0, grid_flood_prior_iterations=60))
+    clean = sphere_points(20_000, 0.5)
+    method = SparseOcc(config, unit_mm=100.0)
+    method.setup(clean, torch.device("cpu"))
+    assert method.solid_prior is not None and method.config.schedule.iterations == 60
+    assert method.arch()["kwargs"]["prior_shape"] == list(method.solid_prior[0].shape)
+    # a stray point (dropped as an outlier) leaves its blocked ball in the flood fill: from the sphere
+    stray = SparseOcc(config, unit_mm=100.0)
+    stray.setup(np.vstack([clean, [[0.0, 0.0, 1.2]]]), torch.device("cpu"))
+    assert stray.solid_prior is None and stray.config.schedule.iterations == config.schedule.iterations
+    # two structures closer than the gap term's reach: the nodes would bridge them, from the sphere
+    pair = np.vstack([sphere_points(10_000, 0.3) - [0.31, 0, 0], sphere_points(10_000, 0.3, seed=1) + [0.31, 0, 0]])
+    labels = np.repeat([1, 2], 10_000)
+    gapped = SparseOcc(config, unit_mm=100.0)
+    gapped.setup(pair, torch.device("cpu"), labels=labels)
+    assert gapped.gap is not None and gapped.solid_prior is None
 
 
 def test_indicator_gradient_is_the_interpolated_volume_gradient_away_from_the_border():

@@ -85,6 +85,18 @@ def with_iterations(method_config, iterations: int):
     return with_schedule(method_config, **changes)
 
 
+def with_flood_prior(method_config, cell_mm: float, iterations: int | None):
+    """A copy of a method config whose grid field starts a point cloud from the solid its flood fill
+    encloses, at nodes cell_mm apart, and then runs at most `iterations` steps, where the method
+    trusts that flood fill (`FieldConfig.grid_flood_prior_cell_mm`, `grid_flood_prior_iterations`);
+    a method without such a field: the config as it is."""
+    field = getattr(method_config, "field", None)
+    if field is None or not hasattr(field, "grid_flood_prior_cell_mm"):
+        return method_config
+    return dataclasses.replace(method_config, field=dataclasses.replace(
+        field, grid_flood_prior_cell_mm=float(cell_mm), grid_flood_prior_iterations=iterations))
+
+
 def build_fit_config(
     preset: str = "default",
     method: str | None = None,
@@ -113,4 +125,5 @@ def build_fit_config(
                      refine=None if run.refine is None else dataclasses.replace(run.refine), seed=seed)
 
 
-__all__ = ["METHOD_CLASSES", "RUN_PRESETS", "Method", "RunPreset", "build_fit_config", "get_method_class", "with_iterations"]
+__all__ = ["METHOD_CLASSES", "RUN_PRESETS", "Method", "RunPreset", "build_fit_config", "get_method_class", "with_flood_prior",
+           "with_iterations"]

@@ -17,6 +17,7 @@ them to their nearest input point. Paper eq. 2: minimax entropy regulariser. Pre
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 from dataclasses import dataclass
 from typing import ClassVar
@@ -56,7 +57,11 @@ class FieldConfig:
     `LabelMapConfig.solid_distance_cell_mm`), the grid's prior is that solid instead of a sphere,
     with this slope (`GridOccupancyField.set_prior`; U starts as tanh(-slope x the distance in
     unit-frame units)): a warm start, the field's surface is the map's from the first step.
-    0: the sphere."""
+    0: the sphere. grid_flood_prior_cell_mm: when > 0 (and grid_solid_prior > 0), a point cloud's
+    grid starts from the solid its flood fill encloses (`flood_fill_solid`, nodes about this far
+    apart, mm) instead of the sphere, where that flood fill is trusted: no stray points were
+    dropped and no two structures come closer than the gap term's reach (`gap_points`); the fit
+    then runs at most grid_flood_prior_iterations steps (None: the schedule's)."""
 
     network: str = "mlp"
     mlp_hidden: int = 256
@@ -73,6 +78,8 @@ class FieldConfig:
     grid_lr_label_map: float = 0.0
     grid_domain: float = 1.2
     grid_solid_prior: float = 0.0
+    grid_flood_prior_cell_mm: float = 0.0
+    grid_flood_prior_iterations: int | None = None
 
 
 @dataclass
@@ -254,7 +261,7 @@ def default_config() -> SparseOccConfig:
     A label map's field starts from the map's own solid instead of a sphere (`grid_solid_prior`,
     slope 2, on the signed distance of its boundary points at 3 mm nodes,
     `pointcloud.mask_signed_distance`), so it is fitted for 150 iterations instead of 400
-    (`RefineConfig.label_map_fit_iterations`). Sternum map, CD-L1 / HD mm (1M samples, /tmp
+    (`RefineConfig.warm_fit_iterations`). Sternum map, CD-L1 / HD mm (1M samples, /tmp
     harness over benchmarks/abkit.py, 2026-12-07), seeds 0 / 1 / 2: 400 iterations from the sphere
     0.096 / 1.03, 0.093 / 1.14, 0.096 / 1.01 (`ribpull bench` at b0cecc7); 150 from the map's solid
     0.096 / 1.03, 0.094 / 1.14, 0.096 / 1.01; 200 from the sphere 0.097 / 2.46 at seed 0, 120 from it 0.198 / 9.26
@@ -302,7 +309,8 @@ class SpaceLabels:
     point. near_in / near_out: (K, 3) points just inside / outside
     the sampled surface (input point -/+ offset along its normal, oriented by the flood fill).
     spacing: flood-fill voxel size; offset: the normal offset used; normals (N, 3): the input
-    points' flood-fill-oriented unit normals.
+    points' flood-fill-oriented unit normals. outside / blocked / origin: the flood fill itself
+    (`outside_mask`: (X, Y, Z) bool volumes of voxels `spacing` wide, the corner of voxel 0).
     """
 
     free: np.ndarray
@@ -312,6 +320,9 @@ class SpaceLabels:
     spacing: float
     offset: float
     normals: np.ndarray
+    outside: np.ndarray | None = None
+    blocked: np.ndarray | None = None
+    origin: np.ndarray | None = None
 
 
 def outside_mask(points_unit: np.ndarray, block_factor: float = 1.0, max_cells: int = 384, gap: float | None = None
@@ -401,7 +412,55 @@ def space_labels(points_unit: np.ndarray, rng: np.random.Generator, n_free: int 
         offset = min(offset, max_offset)
     free_distance = distance_to_points(points_unit, free, tree, exact_within=0.05 * float(np.ptp(points_unit, 0).max()))
     return SpaceLabels(free, free_distance, (points_unit - offset * normals).astype(np.float32),
-                       (points_unit + offset * normals).astype(np.float32), spacing, offset, normals)
+                       (points_unit + offset * normals).astype(np.float32), spacing, offset, normals,
+                       outside, blocked, origin)
+
+
+def flood_fill_solid(points_unit: np.ndarray, labels: SpaceLabels, cell: float, exact_cells: int = 2,
+                     tree: cKDTree | None = None, min_nodes: int = 50,
+                     clear: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The solid a point cloud's flood fill encloses as a coarse signed distance volume, for the
+    grid's prior (`GridOccupancyField.set_prior`): ((X, Y, Z) float32 unit-frame distances,
+    negative inside; (3, 4) unit frame -> node index affine). Nodes are every s-th flood-fill voxel
+    centre (s = cell / labels.spacing, rounded, at least 1); each holds its distance to the nearest
+    input point (`pointcloud.node_distances`: exact within exact_cells cells of a point). Its sign:
+    positive where the flood fill reached, negative in the cavities it never reached, and inside
+    the blocked shell around the points (both sides of the surface) the side of the nearest
+    point's oriented normal. Then two things the training must decide, not the prior, are left
+    outside: solids of fewer than min_nodes nodes (26-connected: the blocked balls around stray
+    points; a rib holds hundreds) and the nodes around each of (M, 3) `clear` points (the gaps
+    between structures, `gap_points`, which nodes this coarse would otherwise bridge).
+
+    Why: the flood fill already states which side of the points every voxel lies on; starting the
+    field from that solid instead of a sphere leaves the training to correct a surface within a
+    voxel or so of the data (label maps do the same from their own solid)."""
+    from ..pointcloud import node_distances
+
+    stride = max(1, round(float(cell / labels.spacing)))
+    outside = labels.outside[::stride, ::stride, ::stride]
+    blocked = labels.blocked[::stride, ::stride, ::stride]
+    step = stride * labels.spacing
+    index_to_unit = np.diag([step, step, step, 1.0])
+    index_to_unit[:3, 3] = np.asarray(labels.origin, dtype=np.float64) + 0.5 * labels.spacing
+    distance, nearest = node_distances(outside.shape, index_to_unit, points_unit, exact_cells, tree)
+    sign = np.where(outside, 1.0, -1.0)
+    shell = np.flatnonzero(blocked)
+    if len(shell):
+        node = np.stack(np.unravel_index(shell, blocked.shape), 1) * step + index_to_unit[:3, 3]
+        p = nearest.ravel()[shell]
+        side = np.einsum("ij,ij->i", node - points_unit[p], labels.normals[p])
+        sign.ravel()[shell] = np.where(side >= 0, 1.0, -1.0)
+    parts, n_parts = ndimage.label(sign < 0, structure=np.ones((3, 3, 3), bool))
+    small = np.bincount(parts.ravel(), minlength=n_parts + 1) < min_nodes
+    small[0] = False
+    sign[small[parts]] = 1.0
+    unit_to_index = np.linalg.inv(index_to_unit)[:3]
+    if clear is not None and len(clear):
+        corner = np.floor(np.asarray(clear, dtype=np.float64) @ unit_to_index[:, :3].T + unit_to_index[:, 3]).astype(np.int64)
+        for offset in itertools.product((0, 1), repeat=3):  # the 8 nodes a trilinear read at the point mixes
+            ijk = np.clip(corner + offset, 0, np.asarray(sign.shape) - 1)
+            sign[tuple(ijk.T)] = 1.0
+    return (sign * distance).astype(np.float32), unit_to_index
 
 
 def nearest_other_structure(points: np.ndarray, labels: np.ndarray, max_gap: float) -> np.ndarray:
@@ -589,8 +648,10 @@ class SparseOcc(Method):
         kept = np.arange(len(pts))  # the input points used, so that their labels follow them
         if len(pts) > cfg.queries.max_input_points:  # the loss only needs a dense enough sample
             kept = kept[rng.choice(len(pts), cfg.queries.max_input_points, replace=False)]
+        sampled = len(kept)
         if cfg.queries.outlier_gap_factor > 0:
             kept = kept[connected_point_mask(pts[kept], cfg.queries.outlier_gap_factor)]
+        stray = sampled - len(kept)  # points dropped as stray: the flood fill blocked around them too
         pts = pts[kept]
         point_labels = None if labels is None or len(labels) != len(points_unit) else np.asarray(labels)[kept]
         self.points = pts
@@ -614,6 +675,7 @@ class SparseOcc(Method):
                 self.free = torch.from_numpy(labels.free).to(device)
                 # hinge margins: half the distance to the data (capped) and half the normal offset
                 self.free_margin = free_margin(labels.free_distance).to(device)
+        gaps = None
         if s.gap_weight > 0 and self.unit_mm and point_labels is not None:
             gaps, gap_distance = gap_points(pts, point_labels, tree, s.gap_max_mm / self.unit_mm)
             if len(gaps):
@@ -648,10 +710,23 @@ class SparseOcc(Method):
             margin = 0.5 * np.maximum(np.asarray(known.distance) - first_ring, 0.0)
             self.known_margin = torch.from_numpy(margin.astype(np.float32)).to(device)
         self.grid = cfg.field.network == "grid"
-        # the solid the input states (a label map's) as the grid's prior: a warm start
+        # the grid's prior, a warm start: the solid the input states (a label map's), else the one
+        # its flood fill encloses (a point cloud's, when asked for)
         self.solid_prior = None
         if self.grid and cfg.field.grid_solid_prior > 0 and self.known is not None and known.solid_distance is not None:
             self.solid_prior = (np.asarray(known.solid_distance, np.float32), np.asarray(known.unit_to_index))
+        elif self.grid and cfg.field.grid_solid_prior > 0 and cfg.field.grid_flood_prior_cell_mm > 0 \
+                and known is None and labels is not None and self.unit_mm and stray == 0 \
+                and (gaps is None or len(gaps) == 0):
+            # trusted only on clean input: stray points (up to 2% uniform outliers at 60k) left blobs and
+            # bridges the 150 steps did not remove (HD 6.3 mm against 1.4), and gaps between
+            # structures narrower than the nodes (a sternum's cartilage) left HD 3.3-4.4 against 2.75
+            self.solid_prior = flood_fill_solid(pts, labels, cfg.field.grid_flood_prior_cell_mm / self.unit_mm, tree=tree)
+            warm = cfg.field.grid_flood_prior_iterations
+            if warm and warm < cfg.schedule.iterations:  # a surface already near the data settles sooner
+                from . import with_iterations
+
+                self.config = cfg = with_iterations(cfg, warm)
         # label maps (known occupancy) have their own gap weight when one is set
         self.gap_weight = s.gap_weight_label_map if self.known is not None and s.gap_weight_label_map > 0 \
             else s.gap_weight

@@ -125,17 +125,17 @@ def train(method: Method, points_unit: np.ndarray, device: torch.device, progres
           labels: np.ndarray | None = None) -> FittedField:
     """Fit `method` to (N, 3) unit-frame points on `device`; returns the trained FittedField.
 
-    Calls method.setup once (data sampled once), builds method.arch(), lets method.initialize the
-    module (warm starts), then each step sums the terms of method.get_loss_dict(module, step). Checks
+    Calls method.setup once (data sampled once; a method that starts warm may shorten its schedule
+    there), builds method.arch(), lets method.initialize the module (warm starts), then each step sums the terms of method.get_loss_dict(module, step). Checks
     `should_cancel` every 10 steps (raises JobCanceled) and reports progress about twice a second.
     """
     t0 = time.perf_counter()
     device = torch.device(device)
-    schedule: ScheduleConfig = method.config.schedule
     seed_everything(method.config.seed)
     points = np.asarray(points_unit, dtype=np.float64).reshape(-1, 3)
     check_cancel(should_cancel)
     method.setup(points, device, known, labels)
+    schedule: ScheduleConfig = method.config.schedule  # after setup: a warm start may shorten it
     arch = method.arch()
     module = build_module(arch).to(device).train()
     method.initialize(module)
