@@ -47,13 +47,16 @@ def point_triangle_sq(p, a, b, c):  # pragma: no cover - compiled
             qx, qy, qz = b[0], b[1], b[2]
         elif d6 >= 0.0 and d5 <= d6:
             qx, qy, qz = c[0], c[1], c[2]
-        elif vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
+        # an edge whose two ends coincide (a degenerate triangle's: its parameter would be 0 / 0,
+        # which raised inside the parallel loop and left that point's distance unwritten) has no
+        # region of its own: the triangle is a segment, which its other edges cover
+        elif vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0 and d1 - d3 > 0.0:
             v = d1 / (d1 - d3)
             qx, qy, qz = a[0] + v * abx, a[1] + v * aby, a[2] + v * abz
-        elif vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
+        elif vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0 and d2 - d6 > 0.0:
             w = d2 / (d2 - d6)
             qx, qy, qz = a[0] + w * acx, a[1] + w * acy, a[2] + w * acz
-        elif va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:
+        elif va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0 and (d4 - d3) + (d5 - d6) > 0.0:
             w = (d4 - d3) / ((d4 - d3) + (d5 - d6))
             qx, qy, qz = b[0] + w * (c[0] - b[0]), b[1] + w * (c[1] - b[1]), b[2] + w * (c[2] - b[2])
         else:

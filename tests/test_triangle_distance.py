@@ -40,6 +40,15 @@ def test_degenerate_triangles_and_skipped_candidates():
     points = np.array([[1.0, 1.0, 0.0], [3.0, 0.0, 0.0], [5.0, 5.0, 6.0]])
     got = nearest_candidate_distance(points, tri, np.array([[0, -1], [0, -1], [-1, 1]]))
     np.testing.assert_allclose(got, [1.0, 1.0, 1.0], atol=1e-12)
+    # a zero-length edge (two corners at one place, as marching cubes and vertex moves leave): each
+    # of the three edges in turn, with points in that edge's region, which raised ZeroDivisionError
+    # inside the parallel loop and left those distances as whatever the memory held
+    segment = np.array([[0.0, 0, 0], [0, 0, 0], [0, 2, 0]])
+    probes = np.array([[1.0, 1.0, 0.0], [0.0, 1.0, -3.0], [0.0, 3.0, 0.0], [-1.0, -1.0, 0.0]])
+    for roll in range(3):
+        tri = np.ascontiguousarray(np.roll(segment, roll, axis=0)[None].repeat(4096, axis=0))
+        got = nearest_candidate_distance(probes.repeat(1024, axis=0), tri, np.arange(4096)[:, None])
+        np.testing.assert_allclose(got, np.repeat([1.0, 3.0, 1.0, np.sqrt(2.0)], 1024), atol=1e-12)
 
 
 def test_distance_to_surface_is_exact_near_the_surface_and_bounded_far_from_it():
