@@ -388,9 +388,9 @@ def _plan_refinement(cloud, fit_config, options: PipelineOptions):
     meshed at dense_mesh_resolution cells unless the options name a resolution. A label map's
     patches reach refine.label_map_radius_voxels of its largest voxel edge. A field that starts
     from a solid is fitted for warm_fit_iterations: a label map's (the load stage measured it) or,
-    for a point cloud of at most dense_points points whose sampling gap is at most
-    flood_prior_max_gap_mm, the one its flood fill encloses where the method trusts it (the
-    method's config is set to start from it, `methods.with_flood_prior`)."""
+    for a point cloud whose sampling gap is at most flood_prior_max_gap_mm, the one its flood fill
+    encloses where the method trusts it (the method's config is set to start from it,
+    `methods.with_flood_prior`; a dense cloud then fits dense_warm_fit_iterations)."""
     from .methods import with_flood_prior, with_iterations
     from .pointcloud import sampling_gap, voxel_spacing_mm
     from .refine import plan_refinement
@@ -412,10 +412,10 @@ def _plan_refinement(cloud, fit_config, options: PipelineOptions):
         iterations = config.warm_fit_iterations  # a field that starts from the map's solid settles sooner
     # a dense enough point cloud may start from its flood fill's solid (the method judges whether
     # it trusts that flood fill, and then shortens its own schedule)
-    if own and cloud.nifti_affine is None and not dense and config.flood_prior_cell_mm > 0 \
+    if own and cloud.nifti_affine is None and config.flood_prior_cell_mm > 0 \
             and sampling_gap(cloud.points) <= config.flood_prior_max_gap_mm:
         fit_config.method_config = with_flood_prior(fit_config.method_config, config.flood_prior_cell_mm,
-                                                    config.warm_fit_iterations)
+                                                    config.dense_warm_fit_iterations if dense else config.warm_fit_iterations)
     if own and iterations is not None and iterations < planned:
         fit_config.method_config = with_iterations(fit_config.method_config, iterations)
     # the finer mesh pays off only where its vertices are moved onto the patches

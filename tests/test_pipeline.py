@@ -226,6 +226,7 @@ def test_refined_fit_length_follows_the_point_count_and_the_input_kind():
     assert flood_cells[-1] == (0.0, None)
     # a dense point cloud is fitted longer, averages over larger patches and is meshed finer
     assert planned(sphere, dense_points=10_000) == (800, refine.dense_max_neighbours, refine.dense_mesh_resolution)
+    assert flood_cells[-1] == (refine.flood_prior_cell_mm, refine.dense_warm_fit_iterations)
     assert refine.dense_max_neighbours > refine.max_neighbours and refine.dense_mesh_resolution > preset_resolution
     # ... unless the user names a resolution (build_fit_config applied it already)
     assert planned(sphere, dense_points=10_000, resolution=preset_resolution)[2] == preset_resolution
