@@ -87,7 +87,7 @@ import shutil
 import tempfile
 import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import replace
 
 import numpy as np
@@ -305,10 +305,25 @@ def run_pipeline(
         # scipy), so together they take about the longer one's time (60k points: 4.8 -> 3.3 s,
         # 1.5 mm label map: 6.5 -> 4.7 s for the SDF, skeleton and preview). timings_s keeps each
         # stage's own wall time, so "sdf" overlaps the stages after it.
+        # The surface metrics (~1-3 s) need neither the SDF nor the skeleton: whichever thread is
+        # free first measures them (the SDF's after its volume, the main one after the skeleton and
+        # the files), so that the other core does not idle at the end (60k points: the SDF is done
+        # about when the skeleton is, then the main thread had the metrics and the files alone).
+        def surface_stage():
+            report("metrics", 0.0, message="metrics started")
+            t = time.perf_counter()
+            out = _surface_metrics(mesh, reference, frame, fit_config)
+            timings["metrics"] = round(time.perf_counter() - t, 3)
+            return out
+
+        surface_job = _FirstFreeThread(surface_stage)
+
         def sdf_stage():
             t = time.perf_counter()
             out = _sdf_and_weights(cloud, mesh, field, frame, fit_config, tmp, report)
             timings["sdf"] = round(time.perf_counter() - t, 3)
+            if not report.should_cancel():
+                surface_job.run_unless_taken()
             return out
 
         report("sdf", 0.0, message="sdf started")
@@ -323,8 +338,6 @@ def run_pipeline(
                         from .skeleton import export_skeleton
 
                         artifacts.update({k: Path(v) for k, v in export_skeleton(skeleton, tmp, mesh_mm=mesh).items()})
-                with timed("metrics"):
-                    metrics = _metrics(cloud, reference, reference_name, mesh, field, frame, fit_config, skeleton)
                 with timed("export"):
                     from .mesh import export_mesh
 
@@ -335,6 +348,8 @@ def run_pipeline(
                         polylines = _polylines(skeleton) if skeleton is not None else None
                         artifacts["preview.png"] = Path(render_preview(tmp / "preview.png", mesh, polylines,
                                                                        title=f"RibPull {fit_config.preset}"))
+                report.check()
+                metrics = _metrics(cloud, surface_job.result(), reference_name, mesh, field, frame, fit_config, skeleton)
             except BaseException:
                 report.abandon()  # the SDF thread stops at its next check; the pool then joins it
                 raise
@@ -512,12 +527,41 @@ def _polylines(skeleton) -> list[np.ndarray]:
     return [skeleton.nodes_mm[ids] for ids in skeleton_polylines(skeleton)]
 
 
-def _metrics(cloud, reference, reference_name, mesh, field, frame, fit_config, skeleton) -> dict:
-    from .metrics import compression_metrics, mesh_summary, surface_metrics
+class _FirstFreeThread:
+    """Work that either of two threads may do: the first to get to it runs it (`run_unless_taken`),
+    and `result()` returns its result, running it if no thread took it yet, else waiting for it."""
 
-    surface = surface_metrics(mesh, reference, n_samples=fit_config.metrics.n_samples,
-                              tau_mm=fit_config.metrics.fscore_tau_mm, paper_units_per_mm=frame.paper_units_per_mm,
-                              seed=fit_config.seed)
+    def __init__(self, fn):
+        self._fn, self._lock, self._taken, self._future = fn, threading.Lock(), False, Future()
+
+    def run_unless_taken(self) -> None:
+        with self._lock:
+            if self._taken:
+                return
+            self._taken = True
+        try:
+            self._future.set_result(self._fn())
+        except BaseException as e:  # noqa: BLE001 - handed to whoever waits for the result
+            self._future.set_exception(e)
+
+    def result(self):
+        self.run_unless_taken()
+        return self._future.result()
+
+
+def _surface_metrics(mesh, reference, frame, fit_config) -> dict:
+    """metrics.surface_metrics of the mesh (mm) against the reference, under the run's MetricsConfig."""
+    from .metrics import surface_metrics
+
+    return surface_metrics(mesh, reference, n_samples=fit_config.metrics.n_samples,
+                           tau_mm=fit_config.metrics.fscore_tau_mm, paper_units_per_mm=frame.paper_units_per_mm,
+                           seed=fit_config.seed)
+
+
+def _metrics(cloud, surface, reference_name, mesh, field, frame, fit_config, skeleton) -> dict:
+    """metrics.json's content; `surface`: `_surface_metrics`."""
+    from .metrics import compression_metrics, mesh_summary
+
     out = {
         "units": "mm",
         "input": {"n_points": len(cloud), "format": cloud.source_format, "bytes": cloud.source_bytes,
