@@ -17,7 +17,6 @@ them to their nearest input point. Paper eq. 2: minimax entropy regulariser. Pre
 from __future__ import annotations
 
 import dataclasses
-import itertools
 import math
 from dataclasses import dataclass
 from typing import ClassVar
@@ -417,8 +416,7 @@ def space_labels(points_unit: np.ndarray, rng: np.random.Generator, n_free: int 
 
 
 def flood_fill_solid(points_unit: np.ndarray, labels: SpaceLabels, cell: float, exact_cells: int = 2,
-                     tree: cKDTree | None = None, min_nodes: int = 50,
-                     clear: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                     tree: cKDTree | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The solid a point cloud's flood fill encloses as a coarse signed distance volume, for the
     grid's prior (`GridOccupancyField.set_prior`): ((X, Y, Z) float32 unit-frame distances,
     negative inside; (3, 4) unit frame -> node index affine). Nodes are every s-th flood-fill voxel
@@ -426,10 +424,9 @@ def flood_fill_solid(points_unit: np.ndarray, labels: SpaceLabels, cell: float, 
     input point (`pointcloud.node_distances`: exact within exact_cells cells of a point). Its sign:
     positive where the flood fill reached, negative in the cavities it never reached, and inside
     the blocked shell around the points (both sides of the surface) the side of the nearest
-    point's oriented normal. Then two things the training must decide, not the prior, are left
-    outside: solids of fewer than min_nodes nodes (26-connected: the blocked balls around stray
-    points; a rib holds hundreds) and the nodes around each of (M, 3) `clear` points (the gaps
-    between structures, `gap_points`, which nodes this coarse would otherwise bridge).
+    point's oriented normal. Stray points' blocked balls would be small solids in it, and
+    structures closer than a node would be bridged: `SparseOcc.setup` takes it only where neither
+    can happen.
 
     Why: the flood fill already states which side of the points every voxel lies on; starting the
     field from that solid instead of a sphere leaves the training to correct a surface within a
@@ -450,17 +447,7 @@ def flood_fill_solid(points_unit: np.ndarray, labels: SpaceLabels, cell: float, 
         p = nearest.ravel()[shell]
         side = np.einsum("ij,ij->i", node - points_unit[p], labels.normals[p])
         sign.ravel()[shell] = np.where(side >= 0, 1.0, -1.0)
-    parts, n_parts = ndimage.label(sign < 0, structure=np.ones((3, 3, 3), bool))
-    small = np.bincount(parts.ravel(), minlength=n_parts + 1) < min_nodes
-    small[0] = False
-    sign[small[parts]] = 1.0
-    unit_to_index = np.linalg.inv(index_to_unit)[:3]
-    if clear is not None and len(clear):
-        corner = np.floor(np.asarray(clear, dtype=np.float64) @ unit_to_index[:, :3].T + unit_to_index[:, 3]).astype(np.int64)
-        for offset in itertools.product((0, 1), repeat=3):  # the 8 nodes a trilinear read at the point mixes
-            ijk = np.clip(corner + offset, 0, np.asarray(sign.shape) - 1)
-            sign[tuple(ijk.T)] = 1.0
-    return (sign * distance).astype(np.float32), unit_to_index
+    return (sign * distance).astype(np.float32), np.linalg.inv(index_to_unit)[:3]
 
 
 def nearest_other_structure(points: np.ndarray, labels: np.ndarray, max_gap: float) -> np.ndarray:
