@@ -127,8 +127,9 @@ class RefineConfig:
     at most this many instead (None: fit_iterations): the training then corrects a surface already
     within about a voxel. That is a label map whose solid the load stage measured
     (`LabelMapConfig.solid_distance_cell_mm`; the preset's method then starts its field from it,
-    `FieldConfig.grid_solid_prior`), and a refined point cloud of at most dense_points points
-    whose flood fill is trusted (flood_prior_cell_mm). On the sternum map, HD at
+    `FieldConfig.grid_solid_prior`), and a refined point cloud whose flood fill the method trusts
+    (flood_prior_cell_mm; above dense_points points dense_warm_fit_iterations instead). On the
+    sternum map, HD at
     seeds 0 / 1 / 2 the same at 150 as from the sphere at 400 (1.03 / 1.14 / 1.01 mm; 200: 1.16 /
     1.13 / 1.11); from the sphere, 200 iterations left 2.46 mm (`sparseocc.default_config`).
     flood_prior_cell_mm: a refined point cloud whose sampling gap (median distance to the 8th
@@ -141,9 +142,10 @@ class RefineConfig:
     1.34, 0.1319 / 2.69, 0.1259 / 1.68 against 400 from the sphere 0.1292 / 1.28, 0.1308 / 3.08,
     0.1257 / 1.41 (200 / 250 warm at seed 0: 0.1296 / 1.35, 0.1295 / 1.33). 200k points, 300 warm
     against 800 from the sphere: 0.3 mm 0.0763 / 0.64 against 0.0764 / 0.68, 0 mm 0.0190 / 0.39
-    against 0.0190 / 0.42 (25 parts against 24, every rib its own). A sparser cloud's flood-fill shell (one gap each side of the points) fills its ribs
-    and bridges their gaps: at 20k points (4.3 mm gap) 150 warm iterations gave CD-L1 0.217
-    against 0.180 mm and 18 of 24 ribs isolated.
+    against 0.0190 / 0.42 (25 parts against 24, every rib its own); back to back, 200k / 0.3 mm
+    took 48.1 s against 75.7 s. A sparser cloud's flood-fill shell (one gap each side of the
+    points) fills its ribs and bridges their gaps: at 20k points (4.3 mm gap) 150 warm iterations
+    gave CD-L1 0.217 against 0.180 mm and 18 of 24 ribs isolated.
     dense_mesh_resolution: such dense point clouds, when refined, are meshed at (at least) this
     many cells instead of the preset's: the refined vertices lie on the patches, and between them
     the flat triangles cut a rib's curvature (a 1.2 mm edge on a 4 mm radius: ~0.05 mm): at 200k /

@@ -126,8 +126,9 @@ def train(method: Method, points_unit: np.ndarray, device: torch.device, progres
     """Fit `method` to (N, 3) unit-frame points on `device`; returns the trained FittedField.
 
     Calls method.setup once (data sampled once; a method that starts warm may shorten its schedule
-    there), builds method.arch(), lets method.initialize the module (warm starts), then each step sums the terms of method.get_loss_dict(module, step). Checks
-    `should_cancel` every 10 steps (raises JobCanceled) and reports progress about twice a second.
+    there), builds method.arch(), lets method.initialize the module (warm starts), then each step
+    sums the terms of method.get_loss_dict(module, step). Checks `should_cancel` every 10 steps
+    (raises JobCanceled) and reports progress about twice a second.
     """
     t0 = time.perf_counter()
     device = torch.device(device)
