@@ -406,6 +406,8 @@ def _plan_refinement(cloud, fit_config, options: PipelineOptions):
     for a point cloud whose sampling gap is at most flood_prior_max_gap_mm, the one its flood fill
     encloses where the method trusts it (the method's config is set to start from it,
     `methods.with_flood_prior`; a dense cloud then fits dense_warm_fit_iterations)."""
+    from scipy.spatial import cKDTree
+
     from .methods import with_flood_prior, with_iterations
     from .pointcloud import sampling_gap, voxel_spacing_mm
     from .refine import plan_refinement
@@ -418,7 +420,8 @@ def _plan_refinement(cloud, fit_config, options: PipelineOptions):
         config = replace(config, max_neighbours=config.dense_max_neighbours)
     elif cloud.nifti_affine is not None and config.label_map_radius_voxels:
         config = replace(config, radius_mm=config.label_map_radius_voxels * float(voxel_spacing_mm(cloud).max()))
-    plan = plan_refinement(cloud.points, config)
+    tree = cKDTree(np.asarray(cloud.points, dtype=np.float64))  # the plan's and the sampling gap's
+    plan = plan_refinement(cloud.points, config, tree=tree)
     planned = fit_config.method_config.schedule.iterations
     # the shorter schedule was measured for the preset's own method: another method keeps its own
     own = plan.applies and options.iterations is None and options.method is None
@@ -428,7 +431,7 @@ def _plan_refinement(cloud, fit_config, options: PipelineOptions):
     # a dense enough point cloud may start from its flood fill's solid (the method judges whether
     # it trusts that flood fill, and then shortens its own schedule)
     if own and cloud.nifti_affine is None and config.flood_prior_cell_mm > 0 \
-            and sampling_gap(cloud.points) <= config.flood_prior_max_gap_mm:
+            and sampling_gap(cloud.points, tree=tree) <= config.flood_prior_max_gap_mm:
         fit_config.method_config = with_flood_prior(fit_config.method_config, config.flood_prior_cell_mm,
                                                     config.dense_warm_fit_iterations if dense else config.warm_fit_iterations)
     if own and iterations is not None and iterations < planned:

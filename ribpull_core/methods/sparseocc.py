@@ -662,7 +662,6 @@ class SparseOcc(Method):
                 self.free = torch.from_numpy(labels.free).to(device)
                 # hinge margins: half the distance to the data (capped) and half the normal offset
                 self.free_margin = free_margin(labels.free_distance).to(device)
-        gaps = None
         if s.gap_weight > 0 and self.unit_mm and point_labels is not None:
             gaps, gap_distance = gap_points(pts, point_labels, tree, s.gap_max_mm / self.unit_mm)
             if len(gaps):
@@ -703,8 +702,7 @@ class SparseOcc(Method):
         if self.grid and cfg.field.grid_solid_prior > 0 and self.known is not None and known.solid_distance is not None:
             self.solid_prior = (np.asarray(known.solid_distance, np.float32), np.asarray(known.unit_to_index))
         elif self.grid and cfg.field.grid_solid_prior > 0 and cfg.field.grid_flood_prior_cell_mm > 0 \
-                and known is None and labels is not None and self.unit_mm and stray == 0 \
-                and (gaps is None or len(gaps) == 0):
+                and known is None and labels is not None and self.unit_mm and stray == 0 and self.gap is None:
             # trusted only on clean input: stray points (up to 2% uniform outliers at 60k) left blobs and
             # bridges the 150 steps did not remove (HD 6.3 mm against 1.4), and gaps between
             # structures narrower than the nodes (a sternum's cartilage) left HD 3.3-4.4 against 2.75
