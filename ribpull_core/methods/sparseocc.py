@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -387,16 +388,38 @@ def indicator_gradient(volume: np.ndarray, coords: np.ndarray) -> np.ndarray:
                      for e in np.eye(3)], 1)
 
 
+@dataclass
+class OrientedShell:
+    """The flood fill around a point cloud and the points' normals it orients (unit frame):
+    `outside_mask`'s outside / blocked (X, Y, Z) bool volumes of voxels `spacing` wide (origin: the
+    corner of voxel 0) and `oriented_normals`' (N, 3) unit normals."""
+
+    outside: np.ndarray
+    blocked: np.ndarray
+    spacing: float
+    origin: np.ndarray
+    normals: np.ndarray
+
+
+def oriented_shell(points_unit: np.ndarray, tree: cKDTree | None = None, gap: float | None = None) -> OrientedShell:
+    """`outside_mask` of the points and their `oriented_normals` (no random draws: `SparseOcc.setup`
+    makes it beside the queries). tree / gap: a kd-tree of `points_unit` and its sampling gap, to reuse."""
+    outside, blocked, spacing, origin = outside_mask(points_unit, gap=gap)
+    normals = oriented_normals(points_unit, outside, spacing, origin, tree=tree)
+    return OrientedShell(outside, blocked, spacing, origin, normals)
+
+
 def space_labels(points_unit: np.ndarray, rng: np.random.Generator, n_free: int = 400_000,
                  offset_fraction: float = 0.5, tree: cKDTree | None = None, gap: float | None = None,
-                 max_offset: float | None = None) -> SpaceLabels:
+                 max_offset: float | None = None, shell: OrientedShell | None = None) -> SpaceLabels:
     """Free-space points (half near the surface, within 8 voxels (L1) of the dilated input, half
     anywhere outside) and near-surface inside/outside pairs at +-offset along the oriented normals,
     with offset = offset_fraction x the flood-fill spacing (a length derived from the sampling
     density), at most max_offset (unit frame; None: no cap). tree / gap: a kd-tree of
-    `points_unit` and its sampling gap, to reuse."""
-    outside, blocked, spacing, origin = outside_mask(points_unit, gap=gap)
+    `points_unit` and its sampling gap, to reuse; shell: their `oriented_shell`, when made already."""
     tree = tree if tree is not None else cKDTree(points_unit)
+    shell = shell if shell is not None else oriented_shell(points_unit, tree, gap)
+    outside, blocked, spacing, origin = shell.outside, shell.blocked, shell.spacing, shell.origin
     near = outside & ndimage.binary_dilation(blocked, iterations=8)
     pools = []
     for mask, n in ((near, n_free // 2), (outside, n_free - n_free // 2)):
@@ -405,7 +428,7 @@ def space_labels(points_unit: np.ndarray, rng: np.random.Generator, n_free: int 
             pick = np.stack(np.unravel_index(cells[rng.integers(0, len(cells), n)], mask.shape), axis=1)
             pools.append(origin + (pick + rng.random((n, 3))) * spacing)
     free = np.concatenate(pools).astype(np.float32) if pools else np.zeros((0, 3), np.float32)
-    normals = oriented_normals(points_unit, outside, spacing, origin, tree=tree)
+    normals = shell.normals
     offset = offset_fraction * 2 * spacing  # in units of the blocking radius (2 voxels)
     if max_offset is not None:
         offset = min(offset, max_offset)
@@ -644,37 +667,45 @@ class SparseOcc(Method):
         self.points = pts
         tree = cKDTree(pts)
         gap = sampling_gap(pts, tree=tree)
-        queries, nearest = self._queries(pts, rng, tree)
-        self.q_all = torch.from_numpy(queries).to(device)
-        self.pts_t = torch.from_numpy(pts.astype(np.float32)).to(device)
         s = cfg.sign
         if s.near_surface_centres not in ("points", "quadric", "quadric_when_noisy"):
             raise ValueError(f"unknown near_surface_centres {s.near_surface_centres!r}: "
                              "'points', 'quadric' or 'quadric_when_noisy'")
-        self.free = self.near = self.gap = None
-        labels = None
-        if s.free_space_weight > 0 or s.near_surface_weight > 0:
-            max_offset = s.near_surface_offset_max_mm / self.unit_mm \
-                if s.near_surface_offset_max_mm > 0 and self.unit_mm else None
-            labels = space_labels(pts, rng, offset_fraction=s.near_surface_offset, tree=tree, gap=gap,
-                                  max_offset=max_offset)
-            if s.free_space_weight > 0 and len(labels.free):
-                self.free = torch.from_numpy(labels.free).to(device)
-                # hinge margins: half the distance to the data (capped) and half the normal offset
-                self.free_margin = free_margin(labels.free_distance).to(device)
-        if s.gap_weight > 0 and self.unit_mm and point_labels is not None:
-            gaps, gap_distance = gap_points(pts, point_labels, tree, s.gap_max_mm / self.unit_mm)
-            if len(gaps):
-                self.gap = torch.from_numpy(gaps).to(device)
-                self.gap_margin = free_margin(gap_distance).to(device)
         target_kind = cfg.queries.label_map_targets if known is not None else cfg.queries.targets
         if target_kind not in ("nearest", "quadric"):
             raise ValueError(f"unknown pull targets {target_kind!r}: 'nearest' or 'quadric'")
-        near_wanted = labels is not None and s.near_surface_weight > 0
+        want_labels = s.free_space_weight > 0 or s.near_surface_weight > 0
+        near_wanted = want_labels and s.near_surface_weight > 0
         centred = near_wanted and known is None and s.near_surface_centres != "points"
-        # one set of patches serves eq. 1's targets and the hinges' centres (a label map's hinges keep its points)
-        self.target_patches, self.noisy_input = (self._target_patches(pts, labels.normals if labels else None, tree)
-                                                 if target_kind == "quadric" or centred else (None, False))
+        self.free = self.near = self.gap = None
+        labels = None
+        # The flood fill and its normals (no random draws) are made in a thread beside the queries
+        # (the first draws), and the quadric patches beside the free space's distances: the same
+        # numbers as one after the other, with the single-threaded numpy of each overlapping the other
+        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="ribpull-setup") as pool:
+            shell_job = pool.submit(oriented_shell, pts, tree, gap) if want_labels else None
+            queries, nearest = self._queries(pts, rng, tree)
+            shell = shell_job.result() if shell_job is not None else None
+            # one set of patches serves eq. 1's targets and the hinges' centres (a label map's hinges keep its points)
+            patches_job = pool.submit(self._target_patches, pts, shell.normals if shell else None, tree) \
+                if target_kind == "quadric" or centred else None
+            if want_labels:
+                max_offset = s.near_surface_offset_max_mm / self.unit_mm \
+                    if s.near_surface_offset_max_mm > 0 and self.unit_mm else None
+                labels = space_labels(pts, rng, offset_fraction=s.near_surface_offset, tree=tree, gap=gap,
+                                      max_offset=max_offset, shell=shell)
+                if s.free_space_weight > 0 and len(labels.free):
+                    self.free = torch.from_numpy(labels.free).to(device)
+                    # hinge margins: half the distance to the data (capped) and half the normal offset
+                    self.free_margin = free_margin(labels.free_distance).to(device)
+            if s.gap_weight > 0 and self.unit_mm and point_labels is not None:
+                gaps, gap_distance = gap_points(pts, point_labels, tree, s.gap_max_mm / self.unit_mm)
+                if len(gaps):
+                    self.gap = torch.from_numpy(gaps).to(device)
+                    self.gap_margin = free_margin(gap_distance).to(device)
+            self.target_patches, self.noisy_input = patches_job.result() if patches_job is not None else (None, False)
+        self.q_all = torch.from_numpy(queries).to(device)
+        self.pts_t = torch.from_numpy(pts.astype(np.float32)).to(device)
         max_shift = cfg.queries.target_max_shift * gap
         if near_wanted:
             near_in, near_out = labels.near_in, labels.near_out
