@@ -209,7 +209,6 @@ def fit_field(cloud, fit_config, device, report: _Reporter):
     known = None
     if cloud.occupancy_points is not None:
         from .methods.base import KnownOccupancy
-        from .pointcloud import face_outward_normals
 
         solid, unit_to_index = None, None
         if cloud.solid_distance_mm is not None:  # in the unit frame: distances / half extent, and
@@ -219,8 +218,7 @@ def fit_field(cloud, fit_config, device, report: _Reporter):
             unit_to_mm[:3, 3] = frame.center_mm
             unit_to_index = (np.linalg.inv(np.asarray(cloud.solid_distance_affine, dtype=np.float64)) @ unit_to_mm)[:3]
         known = KnownOccupancy(frame.to_unit(cloud.occupancy_points).astype(np.float32), cloud.occupancy_inside,
-                               np.asarray(cloud.occupancy_distance_mm) / frame.half_extent_mm, solid, unit_to_index,
-                               face_outward_normals(cloud))  # directions: the unit frame only scales
+                               np.asarray(cloud.occupancy_distance_mm) / frame.half_extent_mm, solid, unit_to_index)
     field = method.fit(frame.to_unit(cloud.points).astype(np.float32), device, progress=on_fit,
                        should_cancel=report.should_cancel, known=known, labels=cloud.labels)
     return field, frame

@@ -53,8 +53,6 @@ class PointCloud:
     #: a label map's boundary points: (N,) int8 voxel axis (0, 1, 2 of the affine's columns) of the
     #: voxel face each point stands for (`mask_boundary_cloud`); None for other inputs
     face_axis: np.ndarray | None = None
-    #: and (N,) int8 +1 / -1: the face's unselected side lies that way along its axis
-    face_step: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.points = np.ascontiguousarray(self.points, dtype=np.float64).reshape(-1, 3)
@@ -111,8 +109,7 @@ def mask_boundary_cloud(cloud: PointCloud, max_points: int = 120_000, seed: int 
     sternum phantom's 1.5 mm map its Hausdorff distance 1.48 -> 1.38 mm, CD-L1 the same; a map
     whose structures never touch is unchanged). cloud: from a NIfTI label map (nifti_affine set). At most
     max_points faces are kept (a seeded uniform subset). Returns a PointCloud that keeps the cloud's
-    affine, shape, source format/bytes and label names, and each point's face axis and the side of
-    it the structure ends on (`face_axis`, `face_step`; `face_outward_normals`).
+    affine, shape, source format/bytes and label names, and each point's face axis (`face_axis`).
 
     subvoxel_sigma_mm > 0 moves each face point along its axis to where the mask, smoothed by a
     Gaussian of that std (mm, per axis through the voxel spacing), crosses 0.5 between the two voxel
@@ -133,7 +130,7 @@ def mask_boundary_cloud(cloud: PointCloud, max_points: int = 120_000, seed: int 
     # a face bounds a structure where its neighbour differs: in being selected, or (between_labels)
     # in its label, which is 0 for an unselected voxel
     key = labels if between_labels else inside
-    centres, face_labels, face_axes, face_steps = [], [], [], []
+    centres, face_labels, face_axes = [], [], []
     for axis in range(3):
         for step in (1, -1):
             neighbour_differs = np.roll(key, -step, axis=axis) != key  # the padding keeps the roll from wrapping
@@ -152,14 +149,12 @@ def mask_boundary_cloud(cloud: PointCloud, max_points: int = 120_000, seed: int 
             centres.append(faces + lo + offset)
             face_labels.append(lab)
             face_axes.append(np.full(len(faces), axis, dtype=np.int8))
-            face_steps.append(np.full(len(faces), step, dtype=np.int8))
     ijk_faces = np.concatenate(centres)
     face_labels = np.concatenate(face_labels)
     face_axes = np.concatenate(face_axes)
-    face_steps = np.concatenate(face_steps)
     if len(ijk_faces) > max_points:
         keep = np.sort(np.random.default_rng(seed).choice(len(ijk_faces), max_points, replace=False))
-        ijk_faces, face_labels, face_axes, face_steps = ijk_faces[keep], face_labels[keep], face_axes[keep], face_steps[keep]
+        ijk_faces, face_labels, face_axes = ijk_faces[keep], face_labels[keep], face_axes[keep]
     from trimesh import transform_points
 
     return PointCloud(points=transform_points(ijk_faces, np.asarray(cloud.nifti_affine, dtype=np.float64)),
@@ -168,19 +163,8 @@ def mask_boundary_cloud(cloud: PointCloud, max_points: int = 120_000, seed: int 
                       nifti_affine=cloud.nifti_affine, nifti_shape=cloud.nifti_shape,
                       label_names=dict(cloud.label_names), occupancy_points=cloud.occupancy_points,
                       occupancy_inside=cloud.occupancy_inside, occupancy_distance_mm=cloud.occupancy_distance_mm,
-                      dicom_source=cloud.dicom_source, boundary_smoothing_mm2=smoothing_mm2, face_axis=face_axes, face_step=face_steps,
+                      dicom_source=cloud.dicom_source, boundary_smoothing_mm2=smoothing_mm2, face_axis=face_axes,
                       solid_distance_mm=cloud.solid_distance_mm, solid_distance_affine=cloud.solid_distance_affine)
-
-
-def face_outward_normals(cloud: PointCloud) -> np.ndarray | None:
-    """(N, 3) unit vectors (mm frame) out of the structure at each of a label map's boundary points:
-    along its face's voxel axis through the affine, towards the unselected (or other structure's)
-    voxel (`mask_boundary_cloud`); None for a cloud without faces."""
-    if cloud.face_axis is None or cloud.face_step is None or cloud.nifti_affine is None:
-        return None
-    columns = np.array(cloud.nifti_affine, dtype=np.float64)[:3, :3].T  # row a: voxel axis a in mm (a copy)
-    columns /= np.linalg.norm(columns, axis=1, keepdims=True)
-    return columns[np.asarray(cloud.face_axis, dtype=np.int64)] * np.asarray(cloud.face_step, dtype=np.float64)[:, None]
 
 
 def boundary_smoothing_time_mm2(sigma_mm: float, spacing_mm: np.ndarray) -> float:

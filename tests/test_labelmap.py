@@ -8,7 +8,6 @@ import pytest
 from ribpull_core.pointcloud import (
     PointCloud,
     band_distances,
-    face_outward_normals,
     mask_band_samples,
     mask_boundary_cloud,
     mask_signed_distance,
@@ -107,25 +106,3 @@ def test_signed_distance_prior_reads_the_ball_off_the_map(spacing):
     # the sign is the map's: negative deep inside, positive far outside; the grid reaches 20 mm out
     assert (sdf.ravel()[truth < -3.0] < 0).all() and (sdf.ravel()[truth > 3.0] > 0).all()
     assert r.max() > RADIUS_MM + 19.0
-
-
-@pytest.mark.parametrize("flip_x", [False, True])
-@pytest.mark.parametrize("spacing", [(1.5, 1.5, 1.5), (0.75, 0.75, 2.5)])
-def test_face_outward_normals_point_out_of_the_structure(spacing, flip_x):
-    voxels = sphere_mask_cloud(spacing)
-    if flip_x:  # the same voxels indexed from the other end along x (an LPS-like affine)
-        affine = np.array(voxels.nifti_affine, dtype=float)
-        affine[0, 0], affine[0, 3] = -affine[0, 0], -affine[0, 3]
-        voxels.nifti_affine = affine
-    cloud = mask_boundary_cloud(voxels, max_points=10**9)
-    affine = np.array(cloud.nifti_affine)
-    out = face_outward_normals(cloud)
-    assert np.array_equal(cloud.nifti_affine, affine)  # read, not changed
-    assert out.shape == (len(cloud), 3) and len(cloud) > 1000
-    np.testing.assert_allclose(np.linalg.norm(out, axis=1), 1.0)
-    # along its face's axis, away from the ball's centre (the origin): a face sits half a voxel
-    # beyond its selected centre, so at least that far out along it
-    axis = np.asarray(cloud.face_axis, dtype=int)
-    assert np.array_equal(np.abs(out).argmax(axis=1), axis)
-    assert (np.einsum("ij,ij->i", out, cloud.points) >= 0.5 * np.asarray(spacing)[axis] - 1e-9).all()
-    assert face_outward_normals(voxels) is None  # voxel centres are no faces

@@ -172,35 +172,6 @@ def test_flood_fill_warm_start_is_taken_on_clean_points_only_and_shortens_the_fi
     assert gapped.gap is not None and gapped.solid_prior is None
 
 
-def test_a_label_map_orients_its_near_surface_pairs_by_its_faces_and_draws_no_free_space():
-    from ribpull_core.methods.base import KnownOccupancy
-
-    pts = sphere_points(20_000, 0.5)
-    band = np.concatenate([sphere_points(2000, 0.45, seed=1), sphere_points(2000, 0.55, seed=2)])
-    known = KnownOccupancy(band.astype(np.float32), np.repeat([True, False], 2000), np.full(4000, 0.05))
-    cfg = build_fit_config("default").method_config
-    assert cfg.sign.free_space_weight > 0 and cfg.sign.near_surface_weight > 0 and not cfg.sign.label_map_free_space
-
-    def setup(outward):
-        method = SparseOcc(cfg, unit_mm=100.0)
-        method.setup(pts, torch.device("cpu"), known=dataclasses.replace(known, outward=outward))
-        near = method.near.numpy()
-        r_in, r_out = np.linalg.norm(near[: len(pts)], axis=1), np.linalg.norm(near[len(pts):], axis=1)
-        return method, r_in, r_out
-
-    radial = pts / np.linalg.norm(pts, axis=1, keepdims=True)
-    method, r_in, r_out = setup(radial)
-    assert method.free is None and method.known is not None
-    assert (r_out > r_in).all()
-    # the faces' word, not a flood fill's: the same points said inside out get their pairs swapped
-    _, r_in, r_out = setup(-radial)
-    assert (r_out < r_in).all()
-    # a point cloud states no side: the flood fill orients it, and its free space is drawn
-    cloud = SparseOcc(cfg, unit_mm=100.0)
-    cloud.setup(pts, torch.device("cpu"))
-    assert cloud.free is not None and len(cloud.free) > 0
-
-
 def test_indicator_gradient_is_the_interpolated_volume_gradient_away_from_the_border():
     from scipy import ndimage
 

@@ -114,17 +114,13 @@ class KnownOccupancy:
 
     solid_distance / unit_to_index: the solid the input states as a signed distance volume
     (X, Y, Z) (unit-frame units, negative inside) and the (3, 4) affine from a unit-frame point to
-    its fractional node index, or None (a warm start, `GridOccupancyField.set_prior`).
-
-    outward: (N, 3) unit vectors, one per fitted input point, on the side of the surface the input
-    states is outside there (a label map's boundary faces, `pointcloud.face_outward_normals`), or None."""
+    its fractional node index, or None (a warm start, `GridOccupancyField.set_prior`)."""
 
     points: np.ndarray
     inside: np.ndarray
     distance: np.ndarray
     solid_distance: np.ndarray | None = None
     unit_to_index: np.ndarray | None = None
-    outward: np.ndarray | None = None
 
 
 class Method(ABC):

@@ -168,9 +168,7 @@ class SignConfig:
     "quadric" (each point projected onto its own eq. 1 target patch, which averages the noise of
     its neighbours: a noisy point's "inside" hinge otherwise often lies outside the true surface
     and pushes a bump out) or "quadric_when_noisy" (only on inputs QueryConfig judges noisy);
-    label maps always use their points. label_map_free_space: whether label maps (inputs with known
-    occupancy) get the free-space hinges too (their known occupancy and solid prior already
-    state what is outside). 6 mm: at 60k points
+    label maps always use their points. 6 mm: at 60k points
     no rib point of the sternum phantom's L6 lies within 4.3 mm of a cartilage point across its
     2.9 mm tip gap, and at a 4 mm reach L6, R6 and R8 stayed merged (17 of 20 isolated); at 5 mm
     R6 (2.5 mm tip gap) stayed merged in the sweep at 2480e20 and in 2 of 2 runs after it (19 of
@@ -191,7 +189,6 @@ class SignConfig:
     gap_max_mm: float = 6.0
     gap_weight_label_map: float = 0.0
     near_surface_centres: str = "points"
-    label_map_free_space: bool = True
 
 
 @dataclass
@@ -271,14 +268,6 @@ def default_config() -> SparseOccConfig:
     and 6 of 20 ribs isolated. Slope 1 / 4 at seed 0: HD 1.16 / 1.34 mm (4 at full voxel resolution;
     at 3 mm nodes and 200 iterations 2.73). The 1.5 mm map 0.091 / 0.82 and the 0.75 x 0.75 x 2.5 mm
     map 0.090 / 1.07 at seed 0 (0.091 / 0.83, 0.089 / 1.10 from the sphere at 400).
-    Label maps have no free-space hinges (`SignConfig.label_map_free_space`): their known centres
-    and their solid already state the outside. Their near-surface pairs are oriented by the map's
-    boundary faces (`faces_oriented_shell`), not by a flood fill, so the set-up makes no flood fill
-    and draws no free space (1.5 mm map: 3.2-3.6 -> 1.2-1.8 s). Seed 0, CD-L1 / HD mm (200k
-    samples per side), before -> without free space -> faces' normals too: 1.5 mm map 0.0909 / 0.78
-    -> 0.0910 / 0.79 -> 0.0910 / 0.79; 0.75 x 0.75 x 2.5 mm 0.0898 / 1.05 -> 0.0898 / 1.07 ->
-    0.0900 / 1.10; sternum map 0.0961 / 1.07 -> 0.0959 / 1.08 -> 0.0962 / 1.04. Without the
-    near-surface hinges too the HD went to 2.21 / 1.54 / 2.19 mm.
     Measured in docs/benchmarks.md (benchmarks/pull_targets_ab.py, benchmarks/offset_cap_ab.py,
     benchmarks/gap_ab.py)."""
     return SparseOccConfig(
@@ -292,7 +281,7 @@ def default_config() -> SparseOccConfig:
         sign=SignConfig(free_space_weight=10.0, free_space_points=2048, near_surface_weight=10.0,
                         near_surface_points=4096, near_surface_offset_max_mm=1.0, known_weight=10.0,
                         known_points=8192, gap_weight=10.0, gap_weight_label_map=1.0,
-                        near_surface_centres="quadric_when_noisy", label_map_free_space=False),
+                        near_surface_centres="quadric_when_noisy"),
         schedule=ScheduleConfig(iterations=1000, lr=2e-3, warmup=30, final_lr_ratio=0.05, early_stop_window=100,
                                 early_stop_rel_tol=0.005, early_stop_min_fraction=0.6),
     )
@@ -320,9 +309,8 @@ class SpaceLabels:
     point. near_in / near_out: (K, 3) points just inside / outside
     the sampled surface (input point -/+ offset along its normal, oriented by the flood fill).
     spacing: flood-fill voxel size; offset: the normal offset used; normals (N, 3): the input
-    points' outward unit normals (`OrientedShell`). outside / blocked / origin: the flood fill itself
-    (`outside_mask`: (X, Y, Z) bool volumes of voxels `spacing` wide, the corner of voxel 0), or
-    None where the normals were oriented without it (a label map's faces).
+    points' flood-fill-oriented unit normals. outside / blocked / origin: the flood fill itself
+    (`outside_mask`: (X, Y, Z) bool volumes of voxels `spacing` wide, the corner of voxel 0).
     """
 
     free: np.ndarray
@@ -349,8 +337,9 @@ def outside_mask(points_unit: np.ndarray, block_factor: float = 1.0, max_cells: 
     without crossing the shell is outside. Cavities (rib interiors) are never reached, so they are
     never labelled.
     """
-    block, spacing = flood_fill_voxel(points_unit, block_factor, max_cells, gap)
+    block = block_factor * (gap if gap is not None else sampling_gap(points_unit))
     lo, hi = points_unit.min(0), points_unit.max(0)
+    spacing = max(block / 2.0, float((hi - lo).max() + 8 * block) / max_cells)
     origin = lo - 3 * block
     shape = np.ceil((hi - lo + 6 * block) / spacing).astype(int) + 1
     ijk = np.unique(np.clip(np.round((points_unit - origin) / spacing).astype(int), 0, shape - 1), axis=0)
@@ -367,13 +356,6 @@ def outside_mask(points_unit: np.ndarray, block_factor: float = 1.0, max_cells: 
     reaches_border[border[border > 0]] = True
     outside = reaches_border[labels]
     return outside, blocked, spacing, origin - 0.5 * spacing
-
-
-def flood_fill_voxel(points_unit: np.ndarray, block_factor: float = 1.0, max_cells: int = 384,
-                     gap: float | None = None) -> tuple[float, float]:
-    """(blocking radius, voxel edge) of `outside_mask`'s flood fill of the points (their units)."""
-    block = block_factor * (gap if gap is not None else sampling_gap(points_unit))
-    return block, max(block / 2.0, float(np.ptp(points_unit, axis=0).max() + 8 * block) / max_cells)
 
 
 def _ball_offsets(radius: float) -> np.ndarray:
@@ -408,16 +390,15 @@ def indicator_gradient(volume: np.ndarray, coords: np.ndarray) -> np.ndarray:
 
 @dataclass
 class OrientedShell:
-    """The points' unit normals (N, 3), oriented out of the surface, and the flood fill's voxel edge
-    `spacing` (unit frame; the near-surface pairs' length scale). outside / blocked / origin: the
-    flood fill itself (`outside_mask`: (X, Y, Z) bool volumes, the corner of voxel 0), or None where
-    the input stated the outward side (`faces_oriented_shell`)."""
+    """The flood fill around a point cloud and the points' normals it orients (unit frame):
+    `outside_mask`'s outside / blocked (X, Y, Z) bool volumes of voxels `spacing` wide (origin: the
+    corner of voxel 0) and `oriented_normals`' (N, 3) unit normals."""
 
+    outside: np.ndarray
+    blocked: np.ndarray
     spacing: float
+    origin: np.ndarray
     normals: np.ndarray
-    outside: np.ndarray | None = None
-    blocked: np.ndarray | None = None
-    origin: np.ndarray | None = None
 
 
 def oriented_shell(points_unit: np.ndarray, tree: cKDTree | None = None, gap: float | None = None) -> OrientedShell:
@@ -425,55 +406,27 @@ def oriented_shell(points_unit: np.ndarray, tree: cKDTree | None = None, gap: fl
     makes it beside the queries). tree / gap: a kd-tree of `points_unit` and its sampling gap, to reuse."""
     outside, blocked, spacing, origin = outside_mask(points_unit, gap=gap)
     normals = oriented_normals(points_unit, outside, spacing, origin, tree=tree)
-    return OrientedShell(spacing, normals, outside, blocked, origin)
+    return OrientedShell(outside, blocked, spacing, origin, normals)
 
 
-def faces_oriented_shell(points_unit: np.ndarray, outward: np.ndarray, tree: cKDTree | None = None,
-                         gap: float | None = None, labels: np.ndarray | None = None, k: int = 16) -> OrientedShell:
-    """PCA normals over k neighbours, each flipped to the side that its neighbours' (N, 3) `outward`
-    directions (a label map's boundary faces) add up to, counting only neighbours of its own
-    structure where (N,) `labels` are given; with `outside_mask`'s voxel edge but without its flood
-    fill. tree / gap: a kd-tree of `points_unit` and its sampling gap, to reuse.
-
-    Why the neighbours: a point's own face is often a riser of the map's staircase, nearly
-    perpendicular to the surface, and its side then says little (on a 3 mm map ribs came apart);
-    their sum is the staircase's normal. Why one structure: where two touch, their faces point
-    against each other and cancel (the sternum map's Hausdorff distance 1.16 mm with them counted,
-    1.04 without; the flood fill's orientation 1.08)."""
-    tree = tree if tree is not None else cKDTree(points_unit)
-    normals = pca_normals(points_unit, k, tree)
-    _, nn = tree.query(points_unit, k=min(k, len(points_unit)), workers=-1)
-    weight = np.ones(nn.shape) if labels is None else (labels[nn] == labels[:, None]).astype(np.float64)
-    side = np.einsum("ij,ij->i", normals, np.einsum("nk,nkd->nd", weight, outward[nn]))
-    normals[side < 0] *= -1
-    return OrientedShell(flood_fill_voxel(points_unit, gap=gap)[1], normals)
-
-
-#: free-space points `space_labels` draws (a step takes SignConfig.free_space_points of them)
-FREE_SPACE_POINTS = 400_000
-
-
-def space_labels(points_unit: np.ndarray, rng: np.random.Generator, n_free: int = FREE_SPACE_POINTS,
+def space_labels(points_unit: np.ndarray, rng: np.random.Generator, n_free: int = 400_000,
                  offset_fraction: float = 0.5, tree: cKDTree | None = None, gap: float | None = None,
                  max_offset: float | None = None, shell: OrientedShell | None = None) -> SpaceLabels:
     """Free-space points (half near the surface, within 8 voxels (L1) of the dilated input, half
-    anywhere outside; n_free = 0: none) and near-surface inside/outside pairs at +-offset along the oriented normals,
+    anywhere outside) and near-surface inside/outside pairs at +-offset along the oriented normals,
     with offset = offset_fraction x the flood-fill spacing (a length derived from the sampling
     density), at most max_offset (unit frame; None: no cap). tree / gap: a kd-tree of
     `points_unit` and its sampling gap, to reuse; shell: their `oriented_shell`, when made already."""
     tree = tree if tree is not None else cKDTree(points_unit)
     shell = shell if shell is not None else oriented_shell(points_unit, tree, gap)
     outside, blocked, spacing, origin = shell.outside, shell.blocked, shell.spacing, shell.origin
+    near = outside & ndimage.binary_dilation(blocked, iterations=8)
     pools = []
-    if n_free > 0:
-        if outside is None:
-            raise ValueError("free-space points need the shell's flood fill (`oriented_shell`)")
-        near = outside & ndimage.binary_dilation(blocked, iterations=8)
-        for mask, n in ((near, n_free // 2), (outside, n_free - n_free // 2)):
-            cells = np.flatnonzero(mask)  # flat indices: the voxels of millions are not all unravelled
-            if len(cells):
-                pick = np.stack(np.unravel_index(cells[rng.integers(0, len(cells), n)], mask.shape), axis=1)
-                pools.append(origin + (pick + rng.random((n, 3))) * spacing)
+    for mask, n in ((near, n_free // 2), (outside, n_free - n_free // 2)):
+        cells = np.flatnonzero(mask)  # flat indices: the voxels of millions are not all unravelled
+        if len(cells):
+            pick = np.stack(np.unravel_index(cells[rng.integers(0, len(cells), n)], mask.shape), axis=1)
+            pools.append(origin + (pick + rng.random((n, 3))) * spacing)
     free = np.concatenate(pools).astype(np.float32) if pools else np.zeros((0, 3), np.float32)
     normals = shell.normals
     offset = offset_fraction * 2 * spacing  # in units of the blocking radius (2 voxels)
@@ -721,8 +674,7 @@ class SparseOcc(Method):
         target_kind = cfg.queries.label_map_targets if known is not None else cfg.queries.targets
         if target_kind not in ("nearest", "quadric"):
             raise ValueError(f"unknown pull targets {target_kind!r}: 'nearest' or 'quadric'")
-        free_wanted = s.free_space_weight > 0 and (known is None or s.label_map_free_space)
-        want_labels = free_wanted or s.near_surface_weight > 0
+        want_labels = s.free_space_weight > 0 or s.near_surface_weight > 0
         near_wanted = want_labels and s.near_surface_weight > 0
         centred = near_wanted and known is None and s.near_surface_centres != "points"
         self.free = self.near = self.gap = None
@@ -731,14 +683,7 @@ class SparseOcc(Method):
         # (the first draws), and the quadric patches beside the free space's distances: the same
         # numbers as one after the other, with the single-threaded numpy of each overlapping the other
         with ThreadPoolExecutor(max_workers=1, thread_name_prefix="ribpull-setup") as pool:
-            # a label map states each boundary point's outward side: its normals need no flood fill
-            # (unless it also wants free space, which is drawn from that flood fill)
-            outward = known.outward[kept] if known is not None and known.outward is not None \
-                and len(known.outward) == len(points_unit) else None
-            shell_job = None
-            if want_labels:
-                shell_job = pool.submit(faces_oriented_shell, pts, outward, tree, gap, point_labels) \
-                    if outward is not None and not free_wanted else pool.submit(oriented_shell, pts, tree, gap)
+            shell_job = pool.submit(oriented_shell, pts, tree, gap) if want_labels else None
             queries, nearest = self._queries(pts, rng, tree)
             shell = shell_job.result() if shell_job is not None else None
             # one set of patches serves eq. 1's targets and the hinges' centres (a label map's hinges keep its points)
@@ -747,10 +692,9 @@ class SparseOcc(Method):
             if want_labels:
                 max_offset = s.near_surface_offset_max_mm / self.unit_mm \
                     if s.near_surface_offset_max_mm > 0 and self.unit_mm else None
-                labels = space_labels(pts, rng, n_free=FREE_SPACE_POINTS if free_wanted else 0,
-                                      offset_fraction=s.near_surface_offset, tree=tree, gap=gap,
+                labels = space_labels(pts, rng, offset_fraction=s.near_surface_offset, tree=tree, gap=gap,
                                       max_offset=max_offset, shell=shell)
-                if free_wanted and len(labels.free):
+                if s.free_space_weight > 0 and len(labels.free):
                     self.free = torch.from_numpy(labels.free).to(device)
                     # hinge margins: half the distance to the data (capped) and half the normal offset
                     self.free_margin = free_margin(labels.free_distance).to(device)
