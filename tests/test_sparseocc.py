@@ -32,6 +32,7 @@ from ribpull_core.methods.sparseocc import (
     gap_points,
     indicator_gradient,
     margin_and_gradient,
+    oriented_shell,
     space_labels,
 )
 from ribpull_core.methods.training import with_schedule
@@ -170,6 +171,20 @@ def test_flood_fill_warm_start_is_taken_on_clean_points_only_and_shortens_the_fi
     gapped = SparseOcc(config, unit_mm=100.0)
     gapped.setup(pair, torch.device("cpu"), labels=labels)
     assert gapped.gap is not None and gapped.solid_prior is None
+
+
+def test_space_labels_from_a_shell_made_beforehand_are_the_same_draws():
+    # SparseOcc.setup makes the shell in a thread beside the queries: the labels must not change
+    pts = sphere_points(5000, 0.5)
+    tree = cKDTree(pts)
+    shell = oriented_shell(pts, tree)
+    inward = (np.einsum("ij,ij->i", shell.normals, pts) < 0).mean()
+    assert inward < 0.01 and shell.outside.any() and shell.blocked.any()
+    alone = space_labels(pts, np.random.default_rng(7), n_free=3000, tree=tree)
+    given = space_labels(pts, np.random.default_rng(7), n_free=3000, tree=tree, shell=shell)
+    for name in ("free", "free_distance", "near_in", "near_out", "normals", "outside", "blocked", "origin"):
+        np.testing.assert_array_equal(getattr(alone, name), getattr(given, name), err_msg=name)
+    assert alone.spacing == given.spacing and alone.offset == given.offset
 
 
 def test_indicator_gradient_is_the_interpolated_volume_gradient_away_from_the_border():
