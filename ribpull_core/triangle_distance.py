@@ -22,9 +22,9 @@ def _dot(ax, ay, az, bx, by, bz):  # pragma: no cover - compiled
 
 
 @njit(cache=True)
-def point_triangle_sq(p, a, b, c):  # pragma: no cover - compiled
-    """Squared distance from point p (3,) to the triangle (a, b, c) (each (3,)): the closest point
-    by the triangle's Voronoi regions (vertex, edge or face), as in Ericson's Real-Time Collision
+def closest_point_on_triangle(p, a, b, c):  # pragma: no cover - compiled
+    """The point (qx, qy, qz) of the triangle (a, b, c) (each (3,)) closest to point p (3,): by the
+    triangle's Voronoi regions (vertex, edge or face), as in Ericson's Real-Time Collision
     Detection, 5.1.5. Degenerate triangles fall into an edge or vertex region."""
     abx, aby, abz = b[0] - a[0], b[1] - a[1], b[2] - a[2]
     acx, acy, acz = c[0] - a[0], c[1] - a[1], c[2] - a[2]
@@ -69,8 +69,28 @@ def point_triangle_sq(p, a, b, c):  # pragma: no cover - compiled
                 qx = a[0] + abx * v + acx * w
                 qy = a[1] + aby * v + acy * w
                 qz = a[2] + abz * v + acz * w
+    return qx, qy, qz
+
+
+@njit(cache=True)
+def point_triangle_sq(p, a, b, c):  # pragma: no cover - compiled
+    """Squared distance from point p (3,) to the triangle (a, b, c) (each (3,))."""
+    qx, qy, qz = closest_point_on_triangle(p, a, b, c)
     ex, ey, ez = p[0] - qx, p[1] - qy, p[2] - qz
     return ex * ex + ey * ey + ez * ez
+
+
+@njit(parallel=True, cache=True)
+def closest_points(points, triangles):  # pragma: no cover - compiled
+    """(N, 3) float64: for each of (N, 3) float64 `points` the closest point of its own triangle of
+    (N, 3, 3) float64 `triangles` (what trimesh.triangles.closest_point answers, without its dozens
+    of (N, 3) temporaries: several times faster)."""
+    n = points.shape[0]
+    out = np.empty((n, 3))
+    for i in prange(n):
+        out[i, 0], out[i, 1], out[i, 2] = closest_point_on_triangle(
+            points[i], triangles[i, 0], triangles[i, 1], triangles[i, 2])
+    return out
 
 
 @njit(parallel=True, cache=True)

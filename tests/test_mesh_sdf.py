@@ -174,6 +174,21 @@ def test_write_nifti_roundtrip(tmp_path):
     assert img.header.get_xyzt_units()[0] == "mm"
     np.testing.assert_array_equal(np.asanyarray(img.dataobj), vol)
 
+    plain = write_nifti(tmp_path / "sdf.nii", vol, aff)  # no .gz: written as is
+    np.testing.assert_array_equal(np.asanyarray(nib.load(plain).dataobj), vol)
+
+
+def test_voxel_centres_follow_a_rotated_affine():
+    rot = trimesh.transformations.rotation_matrix(0.4, [1.0, 2.0, 3.0])[:3, :3]
+    aff = np.eye(4)
+    aff[:3, :3] = rot @ np.diag([0.75, 0.8, 2.5])
+    aff[:3, 3] = [-100.0, 20.0, 7.0]
+    shape = (5, 6, 7)
+    ijk = np.stack(np.unravel_index(np.arange(np.prod(shape)), shape), -1).astype(np.float64)
+    want = ijk @ aff[:3, :3].T + aff[:3, 3]
+    np.testing.assert_allclose(voxel_centers_mm(shape, aff), want, atol=1e-12)
+    np.testing.assert_allclose(voxel_centers_mm(shape, aff, 17, 101), want[17:101], atol=1e-12)
+
 
 def test_query_field_in_mm(sphere_mesh):
     c_mm = FRAME.to_mm(np.array([0.1, -0.2, 0.05]))

@@ -7,7 +7,7 @@ import pytest
 import trimesh
 from scipy.spatial import cKDTree
 
-from ribpull_core.triangle_distance import distance_to_surface, nearest_candidate_distance
+from ribpull_core.triangle_distance import closest_points, distance_to_surface, nearest_candidate_distance
 
 
 def _brute_force(points: np.ndarray, mesh: trimesh.Trimesh) -> np.ndarray:
@@ -32,6 +32,27 @@ def test_candidate_distance_matches_brute_force_in_every_region():
     all_faces = np.tile(np.arange(len(mesh.faces)), (len(points), 1))
     got = nearest_candidate_distance(points, np.ascontiguousarray(mesh.triangles), all_faces)
     np.testing.assert_allclose(got, _brute_force(points, mesh), rtol=1e-9, atol=1e-9)
+
+
+def test_closest_points_match_trimesh_in_every_region_and_on_degenerate_triangles():
+    rng = np.random.default_rng(4)
+    tri = rng.normal(size=(20_000, 3, 3)) * 5.0
+    tri[:500, 1] = tri[:500, 0]                                  # a zero-length edge
+    tri[500:1000, 2] = 0.5 * (tri[500:1000, 0] + tri[500:1000, 1])  # zero area: a segment
+    tri[1000:1500, 1:] = tri[1000:1500, :1]                      # a point
+    points = rng.normal(size=(20_000, 3)) * 8.0
+    got = closest_points(points, tri)
+    # the closest point itself may differ where a triangle is a segment or a point (ties), its
+    # distance may not; elsewhere both are the one closest point
+    want = trimesh.triangles.closest_point(tri[1500:], points[1500:])
+    np.testing.assert_allclose(got[1500:], want, atol=1e-9)
+    brute = np.array([np.linalg.norm(trimesh.triangles.closest_point(
+        np.repeat(t[None], 1, 0), p[None]) - p) for t, p in zip(tri[:1500], points[:1500])])
+    np.testing.assert_allclose(np.linalg.norm(got[:1500] - points[:1500], axis=1), brute, atol=1e-9)
+    # on its triangle: the barycentric weights of the answer are in [0, 1]
+    a, b, c = tri[1500:, 0], tri[1500:, 1], tri[1500:, 2]
+    bary = trimesh.triangles.points_to_barycentric(np.stack([a, b, c], 1), got[1500:])
+    assert bary.min() > -1e-6 and bary.max() < 1 + 1e-6
 
 
 def test_degenerate_triangles_and_skipped_candidates():
