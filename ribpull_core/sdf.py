@@ -25,7 +25,7 @@ from .mesh import _double_areas, _sample_triangles, inside_scores, sample_surfac
 from .methods.base import FittedField
 from .metrics import morton_order
 from .pointcloud import PointCloud
-from .sdf_kernels import flat_voxel_centres, grid_upper_bounds, relax_step
+from .sdf_kernels import flat_voxel_centres, grid_upper_bounds, propagate_closest_points, relax_step
 from .triangle_distance import closest_points
 
 #: voxels processed per chunk (bounds memory: ~100 bytes per voxel in flight)
@@ -205,15 +205,12 @@ class SurfaceDistance:
             own[s : s + len(p)] = np.linalg.norm(p - q, axis=1)
         self._near_flat, self._near_exact = flat, own
         del idx
-        ind = ndimage.distance_transform_edt(~near, return_distances=False, return_indices=True)
-        src = np.ravel_multi_index(tuple(ind), shape)
-        del ind, near
-        cp = cp[:, src].reshape((3,) + shape)
-        del src
+        source = ndimage.distance_transform_edt(~near, return_distances=False, return_indices=True)
+        del near
         ax = [(self.origin[k] + np.arange(shape[k]) * g).astype(np.float32) for k in range(3)]
-        best = (ax[0][:, None, None] - cp[0]) ** 2  # squared distance (mm^2, float32) to the stored point
-        best += (ax[1][None, :, None] - cp[1]) ** 2
-        best += (ax[2][None, None, :] - cp[2]) ** 2
+        # best: squared distance (mm^2, float32) from each node to the point it took
+        cp, best = propagate_closest_points(cp.reshape((3,) + shape), source, ax[0], ax[1], ax[2])
+        del source
         for _ in range(self.relax_sweeps):  # a neighbour's closest point may be closer: take it
             for axis, step in self.relax_steps:
                 relax_step(cp, best, ax[0], ax[1], ax[2], axis, step)

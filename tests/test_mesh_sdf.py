@@ -366,6 +366,30 @@ def test_grid_upper_bounds_equal_the_numpy_gather_of_the_cells_nodes(sphere_mesh
     assert 0 < ingrid.sum() < len(p)  # both kinds were checked
 
 
+def test_propagated_closest_points_equal_the_numpy_gather_bit_for_bit():
+    """sdf_kernels.propagate_closest_points: every node takes the point stored at its EDT source
+    node, and its squared distance in float32, exactly as the numpy gather and broadcast computed."""
+    from scipy import ndimage
+
+    from ribpull_core.sdf_kernels import propagate_closest_points
+
+    rng = np.random.default_rng(3)
+    shape = (17, 11, 13)
+    near = rng.random(shape) < 0.05
+    cp_near = np.zeros((3,) + shape, dtype=np.float32)
+    cp_near[:, near] = rng.normal(size=(3, int(near.sum()))).astype(np.float32) * 10.0
+    source = ndimage.distance_transform_edt(~near, return_distances=False, return_indices=True)
+    ax = [(rng.normal() + np.arange(n) * 1.3).astype(np.float32) for n in shape]
+    cp, best = propagate_closest_points(cp_near, source, *ax)
+    want = cp_near.reshape(3, -1)[:, np.ravel_multi_index(tuple(source), shape)].reshape((3,) + shape)
+    want_best = (ax[0][:, None, None] - want[0]) ** 2
+    want_best += (ax[1][None, :, None] - want[1]) ** 2
+    want_best += (ax[2][None, None, :] - want[2]) ** 2
+    np.testing.assert_array_equal(cp, want)
+    np.testing.assert_array_equal(best, want_best)
+    assert cp.dtype == best.dtype == np.float32
+
+
 def test_fast_surface_sampling_is_area_uniform():
     from ribpull_core.mesh import sample_surface_fast
 
