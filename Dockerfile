@@ -23,6 +23,7 @@ ENV PYTHONDONTWRITEBYTECODE=1 \
     PIP_NO_CACHE_DIR=1 \
     PIP_DISABLE_PIP_VERSION_CHECK=1 \
     VIRTUAL_ENV=/opt/venv \
+    NUMBA_CACHE_DIR=/opt/numba-cache \
     PATH=/opt/venv/bin:$PATH \
     RIBPULL_STORAGE_DIR=/data \
     RIBPULL_HOST=0.0.0.0 \
@@ -52,6 +53,9 @@ RUN --mount=type=bind,from=web,source=/web/node_modules,target=/tmp/node_modules
 RUN pip install . \
     && useradd --system --uid 10001 --home-dir /data ribpull \
     && mkdir -p /data && chown ribpull /data
+# numba's kernels compiled into the image (NUMBA_CACHE_DIR), not in each container's first job; a
+# machine whose CPU differs from the build machine's compiles its own on first use, beside these
+RUN mkdir -p /opt/numba-cache && ribpull warmup && chown -R ribpull /opt/numba-cache
 
 USER ribpull
 VOLUME ["/data"]

@@ -17,14 +17,17 @@ help:
 	@echo "make web           (re)vendor the web page's three.js from web/package-lock.json (npm ci)"
 	@echo "make migrate       upgrade the job database (RIBPULL_DATABASE_URL, else the SQLite file) to this code's schema"
 
-# pip install -e '.[dev]' once per pyproject.toml content (stamp = its sha256)
+# pip install -e '.[dev]' once per pyproject.toml content (stamp = its sha256), then `ribpull warmup`:
+# numba compiles the kernels into its cache (ribpull_core/**/__pycache__) instead of in the first job
 install:
 	@want=$$(sha256sum pyproject.toml | cut -d' ' -f1); \
 	if [ -x "$(PY)" ] && [ -f "$(STAMP)" ] && [ "$$(cat $(STAMP))" = "$$want" ]; then exit 0; fi; \
 	if [ ! -x "$(PY)" ]; then echo "creating $(VENV)"; $(PYTHON) -m venv $(VENV) || exit 1; fi; \
 	echo "installing ribpull[dev] into $(VENV) (pyproject.toml changed or first run)"; \
 	$(PY) -m pip install -e '.[dev]' || exit 1; \
-	echo "$$want" > "$(STAMP)"
+	echo "$$want" > "$(STAMP)"; \
+	echo "compiling the CPU kernels once (ribpull warmup), so the first job does not"; \
+	$(VENV)/bin/ribpull warmup || echo "warm-up failed: the kernels will compile on first use instead"
 	@$(PY) scripts/build_web.py
 
 # the web page's three.js (web/package-lock.json -> app/web/static/vendor/; make install runs it)

@@ -1,4 +1,4 @@
-"""`ribpull` command line: fit, skeleton, phantom, bench; submit, status, download (service client).
+"""`ribpull` command line: fit, skeleton, phantom, bench, warmup; submit, status, download (service client).
 
 Every command calls the same library functions the service uses (fit -> pipeline.run_pipeline).
 Bad input prints one line saying what to fix and exits with status 2; a cancel (Ctrl-C) exits 130.
@@ -105,6 +105,16 @@ def cmd_phantom(args: argparse.Namespace) -> int:
     print("wrote " + ", ".join(str(p) for p in files.values()))
     return 0
 
+
+def cmd_warmup(args: argparse.Namespace) -> int:
+    import time
+
+    from .warmup import warm_up
+
+    t = time.perf_counter()
+    warm_up(Path(args.workdir) if args.workdir else None)
+    print(f"warm-up done in {time.perf_counter() - t:.1f} s: numba's kernels are compiled and cached")
+    return 0
 
 def _spacing_arg(text: str) -> float | tuple[float, float, float]:
     """--spacing: one voxel size in mm ("1.5") or three comma-separated ones ("0.75,0.75,2.5")."""
@@ -275,6 +285,11 @@ def build_parser() -> argparse.ArgumentParser:
     ph.add_argument("--partial-volume", action="store_true",
                     help="label a voxel iff more than half of its volume is inside (default: its centre)")
     ph.set_defaults(func=cmd_phantom)
+
+    w = sub.add_parser("warmup", help="compile and cache the CPU kernels (numba) by running the pipeline on small "
+                                      "synthetic inputs, so the first real job does not pay for it (~1-2 min once)")
+    w.add_argument("--workdir", default=None, help="keep the inputs and outputs here (default: a temporary directory)")
+    w.set_defaults(func=cmd_warmup)
 
     b = sub.add_parser("bench", help="methods x cases benchmark; writes results.csv, tables and plots")
     try:

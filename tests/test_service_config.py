@@ -190,6 +190,10 @@ def test_dockerfile_agrees_with_code(compose):
         assert var in names, var
     ignore = (ROOT / ".dockerignore").read_text().split()
     assert ".venv" in ignore and ".git" in ignore
+    # numba's kernels compiled into the image, in a cache the unprivileged runtime user owns
+    cache = re.search(r"NUMBA_CACHE_DIR=(\S+)", text).group(1)
+    warm = re.search(r"^RUN .*ribpull warmup.*$", text, re.MULTILINE).group(0)
+    assert f"chown -R ribpull {cache}" in warm and text.index("pip install .") < text.index(warm)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -201,6 +205,10 @@ def test_makefile_and_ci():
     for target in ("install:", "run: install", "test: install", "openapi:", "sample:"):
         assert target in mk
     assert "scripts/serve.py" in mk and "pyproject.toml" in mk and "pip install -e '.[dev]'" in mk
+    assert mk.index("pip install -e '.[dev]'") < mk.index("ribpull warmup")  # kernels compiled at install
+    from ribpull_core.cli import build_parser
+
+    assert build_parser().parse_args(["warmup"]).func.__name__ == "cmd_warmup"
     ci = (ROOT / ".ci" / "run").read_text()
     assert ci.startswith("#!/usr/bin/env bash\nset -euo pipefail\n") and "make test" in ci
 
