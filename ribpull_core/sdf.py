@@ -79,10 +79,10 @@ def sdf_grid_for(cloud: PointCloud, frame: UnitFrame, config: SdfConfig) -> tupl
 def voxel_centers_mm(shape: tuple[int, int, int], affine: np.ndarray, start: int = 0, stop: int | None = None) -> np.ndarray:
     """(M, 3) mm coordinates of flat (C-order) voxel indices start..stop of a grid."""
     stop = int(np.prod(shape)) if stop is None else stop
-    return voxel_centres_of(np.arange(start, stop, dtype=np.int64), shape, affine)
+    return voxel_centers_at(np.arange(start, stop, dtype=np.int64), shape, affine)
 
 
-def voxel_centres_of(flat_idx: np.ndarray, shape: tuple[int, int, int], affine: np.ndarray) -> np.ndarray:
+def voxel_centers_at(flat_idx: np.ndarray, shape: tuple[int, int, int], affine: np.ndarray) -> np.ndarray:
     """(M, 3) mm coordinates of the voxels with (M,) C-order flat indices `flat_idx` of a grid."""
     return flat_voxel_centres(np.ascontiguousarray(flat_idx, dtype=np.int64), np.asarray(shape, dtype=np.int64),
                               np.ascontiguousarray(affine, dtype=np.float64))
@@ -356,7 +356,7 @@ def signed_distance_volume(
     def field_inside(flat_idx: np.ndarray) -> np.ndarray:
         out = np.empty(len(flat_idx), dtype=bool)
         for s in range(0, len(flat_idx), CHUNK):
-            p = voxel_centres_of(flat_idx[s : s + CHUNK], shape, affine)
+            p = voxel_centers_at(flat_idx[s : s + CHUNK], shape, affine)
             out[s : s + len(p)] = inside_scores(field, frame.to_unit(p), should_cancel=should_cancel) > level
         return out
 

@@ -19,12 +19,20 @@ from numba import njit, prange
 
 
 @njit(inline="always")
+def _node_sq_distance(x, y, z, c0, c1, c2):  # pragma: no cover - compiled
+    """Squared distance (mm^2) from node (x, y, z) to point (c0, c1, c2), in the float32 arithmetic
+    and order every kernel here uses, so that each computes the same value bit for bit."""
+    d = (x - c0) ** 2
+    d += (y - c1) ** 2
+    d += (z - c2) ** 2
+    return d
+
+
+@njit(inline="always")
 def _take_if_nearer(cp, best, ax0, ax1, ax2, i, j, k, si, sj, sk):  # pragma: no cover - compiled
     """Node (i, j, k) takes the closest point stored at (si, sj, sk) when that is nearer to it."""
     c0, c1, c2 = cp[0, si, sj, sk], cp[1, si, sj, sk], cp[2, si, sj, sk]
-    d = (ax0[i] - c0) ** 2
-    d += (ax1[j] - c1) ** 2
-    d += (ax2[k] - c2) ** 2
+    d = _node_sq_distance(ax0[i], ax1[j], ax2[k], c0, c1, c2)
     if d < best[i, j, k]:
         best[i, j, k] = d
         cp[0, i, j, k], cp[1, i, j, k], cp[2, i, j, k] = c0, c1, c2
@@ -47,10 +55,7 @@ def propagate_closest_points(cp_near, source, ax0, ax1, ax2):  # pragma: no cove
                 si, sj, sk = source[0, i, j, k], source[1, i, j, k], source[2, i, j, k]
                 c0, c1, c2 = cp_near[0, si, sj, sk], cp_near[1, si, sj, sk], cp_near[2, si, sj, sk]
                 cp[0, i, j, k], cp[1, i, j, k], cp[2, i, j, k] = c0, c1, c2
-                d = (ax0[i] - c0) ** 2
-                d += (ax1[j] - c1) ** 2
-                d += (ax2[k] - c2) ** 2
-                best[i, j, k] = d
+                best[i, j, k] = _node_sq_distance(ax0[i], ax1[j], ax2[k], c0, c1, c2)
     return cp, best
 
 

@@ -26,6 +26,7 @@ from __future__ import annotations
 import tempfile
 import time
 from collections.abc import Callable
+from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -56,8 +57,9 @@ def warm_up(workdir: str | Path | None = None, inputs: tuple[WarmupInput, ...] =
     from .phantom import PhantomConfig, write_phantom
     from .pipeline import PipelineOptions, run_pipeline
 
-    with tempfile.TemporaryDirectory(prefix="ribpull-warmup-") as tmp:
-        root = Path(workdir) if workdir is not None else Path(tmp)
+    place = tempfile.TemporaryDirectory(prefix="ribpull-warmup-") if workdir is None else nullcontext(workdir)
+    with place as where:
+        root = Path(where)
         out = []
         for item in inputs:
             case = root / item.name
