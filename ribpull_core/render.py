@@ -2,79 +2,88 @@
 
 Views assume the input's frame is patient RAS (x left->right, y posterior->anterior, z up), which is
 how nibabel reads NIfTI inputs; for other inputs they are simply the +y and +x views with z up.
+
+The mesh is drawn into an image by a z-buffer (`rasterize_triangles`) and shown with imshow; the
+skeleton's curves are drawn over it as lines. Why: matplotlib's 3D polygons cost ~0.6-1.2 s per
+preview (per-polygon projection, depth sorting and paths for 2 x 60k faces), in the pipeline's tail
+beside the SDF; the z-buffer draws both views in a few tens of milliseconds.
 """
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import numpy as np
 import trimesh
 from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.collections import LineCollection
 from matplotlib.figure import Figure
-from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection
+from numba import njit
 
-MAX_FACES = 60_000
 MESH_RGB = np.array([0.86, 0.82, 0.74])  # bone
 SKELETON_RGB = (0.85, 0.1, 0.1)
-#: (title, elevation, azimuth) of the two views: anterior (camera on +y, the front in RAS) and lateral (+x)
-VIEWS = (("anterior", 0.0, 90.0), ("lateral", 0.0, 0.0))
-
-
-def _row_keys(rows: np.ndarray) -> np.ndarray:
-    """(n, 3) non-negative ints -> (n,) int64 keys in the rows' lexicographic order."""
-    span = rows.max(0).astype(np.int64) + 1 if len(rows) else np.ones(3, dtype=np.int64)
-    return (rows[:, 0] * span[1] + rows[:, 1]) * span[2] + rows[:, 2]
-
-
-def _unique_inverse(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(inverse (n,), first index of each unique key (u,)), unique keys in sorted order: what
-    np.unique(..., return_index=True, return_inverse=True) gives, by one stable argsort (much faster
-    than np.unique on rows)."""
-    order = np.argsort(keys, kind="stable")
-    sk = keys[order]
-    new = np.r_[True, sk[1:] != sk[:-1]] if len(sk) else np.zeros(0, dtype=bool)
-    inv = np.empty(len(keys), dtype=np.int64)
-    inv[order] = np.cumsum(new) - 1
-    return inv, order[new]
-
-
-def cluster_decimate(vertices: np.ndarray, faces: np.ndarray, max_faces: int = MAX_FACES) -> tuple[np.ndarray, np.ndarray]:
-    """Vertex-clustering decimation: (V, 3), (F, 3) -> at most ~max_faces faces (same units).
-
-    Vertices are merged per cubic cell (cell size from the area per wanted face), faces that collapse
-    are dropped. Crude but fast and shape-preserving at preview scale.
-    """
-    vertices = np.asarray(vertices, dtype=np.float64)
-    faces = np.asarray(faces, dtype=np.int64)
-    if len(faces) <= max_faces:
-        return vertices, faces
-    tri = vertices[faces]
-    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum()
-    cell = math.sqrt(2.0 * area / max_faces) if area > 0 else 1.0
-    v, f = vertices, faces
-    for _ in range(8):
-        key = np.floor((vertices - vertices.min(0)) / cell).astype(np.int64)
-        inv, _ = _unique_inverse(_row_keys(key))  # cell number per vertex, cells in lexicographic order
-        fc = inv[faces]
-        fc = fc[(fc[:, 0] != fc[:, 1]) & (fc[:, 1] != fc[:, 2]) & (fc[:, 0] != fc[:, 2])]
-        _, first = _unique_inverse(_row_keys(np.sort(fc, axis=1)))
-        f = fc[np.sort(first)]  # keep each face's winding
-        n_new = int(inv.max()) + 1
-        v = np.zeros((n_new, 3))
-        np.add.at(v, inv, vertices)
-        v /= np.bincount(inv, minlength=n_new)[:, None]
-        if len(f) <= max_faces:
-            break
-        cell *= math.sqrt(len(f) / max_faces) * 1.05
-    return v, f
+#: (title, screen axes, depth axis) of the two orthographic views, each a signed world axis (0 x,
+#: 1 y, 2 z; -1 - k: minus axis k): anterior (camera on +y, the front in RAS: the patient's right on
+#: the viewer's left) and lateral (camera on +x, anterior to the right); z up in both
+VIEWS = (("anterior", (-1, 2), 1), ("lateral", (1, 2), 0))
+#: pixels per side of each view's square image
+VIEW_PX = 560
 
 
 def _shade(normals: np.ndarray, view_dir: np.ndarray, rgb: np.ndarray) -> np.ndarray:
     """(F, 3) unit normals -> (F, 3) colours: ambient + two-sided Lambert from the camera side."""
     lam = np.abs(normals @ view_dir)
     return np.clip(rgb[None, :] * (0.35 + 0.65 * lam[:, None]), 0, 1)
+
+
+@njit(cache=True)
+def rasterize_triangles(tri_px, colors, height, width, background):  # pragma: no cover - compiled
+    """(F, 3, 3) triangles in pixels (x right, y down, depth: larger is nearer the camera) and (F, 3)
+    colours -> (height, width, 3) image (float, background (3,) where no triangle is): each pixel
+    whose centre a triangle covers takes the nearest such triangle's colour (depth interpolated)."""
+    image = np.empty((height, width, 3))
+    for c in range(3):
+        image[:, :, c] = background[c]
+    zbuf = np.full((height, width), -np.inf)
+    for f in range(tri_px.shape[0]):
+        x0, y0, z0 = tri_px[f, 0, 0], tri_px[f, 0, 1], tri_px[f, 0, 2]
+        x1, y1, z1 = tri_px[f, 1, 0], tri_px[f, 1, 1], tri_px[f, 1, 2]
+        x2, y2, z2 = tri_px[f, 2, 0], tri_px[f, 2, 1], tri_px[f, 2, 2]
+        area = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0)
+        if area == 0.0:
+            continue
+        i_lo = max(int(np.floor(min(x0, x1, x2))), 0)
+        i_hi = min(int(np.ceil(max(x0, x1, x2))), width - 1)
+        j_lo = max(int(np.floor(min(y0, y1, y2))), 0)
+        j_hi = min(int(np.ceil(max(y0, y1, y2))), height - 1)
+        for j in range(j_lo, j_hi + 1):
+            py = j + 0.5
+            for i in range(i_lo, i_hi + 1):
+                px = i + 0.5
+                # barycentric weights from the edge functions (either winding)
+                w0 = ((x1 - px) * (y2 - py) - (x2 - px) * (y1 - py)) / area
+                w1 = ((x2 - px) * (y0 - py) - (x0 - px) * (y2 - py)) / area
+                w2 = 1.0 - w0 - w1
+                if w0 < 0.0 or w1 < 0.0 or w2 < 0.0:
+                    continue
+                z = w0 * z0 + w1 * z1 + w2 * z2
+                if z > zbuf[j, i]:
+                    zbuf[j, i] = z
+                    for c in range(3):
+                        image[j, i, c] = colors[f, c]
+    return image
+
+
+def _signed_axis(points: np.ndarray, axis: int) -> np.ndarray:
+    """(..., 3) points -> (...) their coordinate along a signed axis of VIEWS (-1 - k: minus axis k)."""
+    return points[..., axis] if axis >= 0 else -points[..., -1 - axis]
+
+
+def _view_direction(depth_axis: int) -> np.ndarray:
+    """(3,) unit vector from the scene towards the camera of a view whose depth is `depth_axis`."""
+    d = np.zeros(3)
+    d[abs(depth_axis) if depth_axis >= 0 else -1 - depth_axis] = 1.0 if depth_axis >= 0 else -1.0
+    return d
 
 
 def render_preview(
@@ -85,17 +94,18 @@ def render_preview(
 ) -> Path:
     """Write a 1200×600 px PNG with anterior and lateral orthographic views; returns the path.
 
-    mesh_mm: the surface (mm), decimated to <= MAX_FACES faces for drawing (semi-transparent when a
-    skeleton is drawn too). polylines_mm: skeleton curves, each (K, 3) mm, drawn on top in red.
+    mesh_mm: the surface (mm), every face drawn opaque and flat-shaded (a z-buffer needs no
+    decimation: ~0.1 s for 1M faces).
+    polylines_mm: skeleton curves, each (K, 3) mm, drawn over the mesh in red.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     polylines = [np.asarray(p, dtype=np.float64).reshape(-1, 3) for p in (polylines_mm or []) if len(p) >= 2]
     pts = []
-    v = f = fn = None
+    tri = fn = None
     if mesh_mm is not None and len(mesh_mm.faces):
-        v, f = cluster_decimate(mesh_mm.vertices, mesh_mm.faces)
-        tri = v[f]
+        v = np.asarray(mesh_mm.vertices, dtype=np.float64)
+        tri = v[np.asarray(mesh_mm.faces, dtype=np.int64)]
         fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
         fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-12)
         pts.append(v)
@@ -109,29 +119,30 @@ def render_preview(
         allp = np.concatenate(pts)
         lo, hi = allp.min(0), allp.max(0)
         centre, half = (lo + hi) / 2, max(float((hi - lo).max()) / 2, 1e-6) * 1.02
-    for k, (name, elev, azim) in enumerate(VIEWS):
-        ax = fig.add_subplot(1, 2, k + 1, projection="3d", computed_zorder=False)
-        ax.set_proj_type("ortho")
-        ax.view_init(elev=elev, azim=azim)
+    for k, (name, (h_axis, v_axis), depth_axis) in enumerate(VIEWS):
+        ax = fig.add_subplot(1, 2, k + 1)
         ax.set_axis_off()
         ax.set_title(name)
         if not pts:
-            ax.text2D(0.5, 0.5, "nothing to show", transform=ax.transAxes, ha="center")
+            ax.text(0.5, 0.5, "nothing to show", transform=ax.transAxes, ha="center")
             continue
-        if f is not None:
-            e, a = math.radians(elev), math.radians(azim)
-            view_dir = np.array([math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e)])
-            alpha = 0.55 if polylines else 1.0
-            coll = Poly3DCollection(tri, facecolors=_shade(fn, view_dir, MESH_RGB), edgecolors="none",
-                                    linewidths=0, alpha=alpha, zorder=1)
-            ax.add_collection3d(coll)
+        # screen coordinates (mm, relative to the centre): u right, w up; the view box is +-half
+        c_u, c_w = _signed_axis(centre, h_axis), _signed_axis(centre, v_axis)
+        if tri is not None:
+            px_per_mm = VIEW_PX / (2 * half)
+            tri_px = np.stack([(_signed_axis(tri, h_axis) - c_u + half) * px_per_mm,
+                               (half - (_signed_axis(tri, v_axis) - c_w)) * px_per_mm,
+                               _signed_axis(tri, depth_axis)], axis=-1)
+            image = rasterize_triangles(np.ascontiguousarray(tri_px), _shade(fn, _view_direction(depth_axis), MESH_RGB),
+                                        VIEW_PX, VIEW_PX, np.ones(3))
+            ax.imshow(image, extent=(-half, half, -half, half), interpolation="antialiased", zorder=1)
         if polylines:
             segs = np.concatenate([np.stack([p[:-1], p[1:]], 1) for p in polylines])
-            ax.add_collection3d(Line3DCollection(segs, colors=[SKELETON_RGB], linewidths=1.6, zorder=2))
-        ax.set_xlim(centre[0] - half, centre[0] + half)
-        ax.set_ylim(centre[1] - half, centre[1] + half)
-        ax.set_zlim(centre[2] - half, centre[2] + half)
-        ax.set_box_aspect((1, 1, 1), zoom=1.3)
+            segs_2d = np.stack([_signed_axis(segs, h_axis) - c_u, _signed_axis(segs, v_axis) - c_w], axis=-1)
+            ax.add_collection(LineCollection(segs_2d, colors=[SKELETON_RGB], linewidths=1.6, zorder=2))
+        ax.set_xlim(-half, half)
+        ax.set_ylim(-half, half)
+        ax.set_aspect("equal")
     fig.subplots_adjust(left=0, right=1, bottom=0, top=0.93, wspace=0)
     fig.savefig(path, dpi=100, facecolor="white")
     return path

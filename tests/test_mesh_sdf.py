@@ -404,31 +404,45 @@ def test_fast_surface_sampling_is_area_uniform():
     assert np.all((pts[:, :2] >= 0) & (pts[:, :2] <= 2))
 
 
-def test_cluster_decimate_matches_the_reference_algorithm():
-    from ribpull_core.render import cluster_decimate
+def test_rasterize_triangles_covers_pixel_centres_and_keeps_the_nearest():
+    from ribpull_core.render import rasterize_triangles
 
-    def reference(vertices, faces, max_faces):  # the original np.unique-on-rows formulation
-        tri = vertices[faces]
-        area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum()
-        cell = np.sqrt(2.0 * area / max_faces)
-        for _ in range(8):
-            key = np.floor((vertices - vertices.min(0)) / cell).astype(np.int64)
-            _, inv = np.unique(key, axis=0, return_inverse=True)
-            inv = inv.reshape(-1)
-            fc = inv[faces]
-            fc = fc[(fc[:, 0] != fc[:, 1]) & (fc[:, 1] != fc[:, 2]) & (fc[:, 0] != fc[:, 2])]
-            _, first = np.unique(np.sort(fc, axis=1), axis=0, return_index=True)
-            f = fc[np.sort(first)]
-            n_new = int(inv.max()) + 1
-            v = np.zeros((n_new, 3))
-            np.add.at(v, inv, vertices)
-            v /= np.bincount(inv, minlength=n_new)[:, None]
-            if len(f) <= max_faces:
-                break
-            cell *= np.sqrt(len(f) / max_faces) * 1.05
-        return v, f
+    # a 4 x 4 px square (two triangles, one of each winding) at depth 0 over pixels x 2..5, y 1..4,
+    # and a red triangle half over it: nearer (depth 1) on its left, farther (depth -1) elsewhere
+    square = np.array([[[2, 1, 0], [6, 1, 0], [6, 5, 0]], [[2, 1, 0], [2, 5, 0], [6, 5, 0]]], float)
+    near = np.array([[[0, 0, 1], [4, 0, 1], [0, 8, 1]]], float)
+    far = np.array([[[5, 0, -1], [9, 0, -1], [9, 8, -1]]], float)
+    colours = np.array([[0, 1, 0], [0, 1, 0], [1, 0, 0], [1, 0, 0]], float)
+    im = rasterize_triangles(np.concatenate([square, near, far]), colours, 8, 10, np.ones(3))
+    green = (im == [0, 1, 0]).all(-1)
+    red = (im == [1, 0, 0]).all(-1)
+    white = (im == 1).all(-1)
+    assert (green | red | white).all()
+    covered_square = np.zeros((8, 10), bool)
+    covered_square[1:5, 2:6] = True
+    # the near triangle wins where it covers the square's pixel centres: x + 0.5 <= 4 - (y + 0.5) / 2
+    ys, xs = np.mgrid[0:8, 0:10] + 0.5
+    in_near = xs <= 4 - ys / 2
+    assert np.array_equal(red & covered_square, covered_square & in_near)
+    assert np.array_equal(green, covered_square & ~in_near)  # the far triangle is hidden behind it
+    assert red[0, 8] and white[7, 0]
 
-    big = trimesh.creation.torus(80, 20, major_sections=200, minor_sections=120)
-    v, f = cluster_decimate(big.vertices, big.faces, max_faces=5000)
-    rv, rf = reference(np.asarray(big.vertices), np.asarray(big.faces), 5000)
-    assert len(f) <= 5000 and np.array_equal(f, rf) and np.allclose(v, rv)
+
+def test_render_preview_views_follow_ras(tmp_path):
+    """Anterior view: the camera in front (+y), the patient's right (+x) on the viewer's left.
+    Lateral: the camera on the right (+x), anterior (+y) on the viewer's right. A 20 mm sphere and
+    a 4 mm box are told apart by their widths in the image."""
+    from PIL import Image
+
+    def drawn_columns(png, view):  # columns of the view's half of the image that hold the mesh
+        im = np.asarray(Image.open(png).convert("L")).astype(int)[60:, 600 * view:600 * (view + 1)]
+        return np.flatnonzero((im < 245).any(axis=0))
+
+    sphere = trimesh.creation.icosphere(3, 10)
+    box_left = trimesh.creation.box((4, 4, 4)).apply_translation([-60, 0, 0])
+    # anterior: the sphere on the patient's right (+x) shows on the left, the box on the right
+    cols = drawn_columns(render_preview(tmp_path / "a.png", sphere.copy().apply_translation([60, 0, 0]) + box_left), 0)
+    assert np.ptp(cols[cols < 300]) > 3 * np.ptp(cols[cols >= 300]) > 0
+    # lateral: the sphere in front (+y) shows on the right, the box (y = 0) on the left
+    cols = drawn_columns(render_preview(tmp_path / "l.png", sphere.copy().apply_translation([0, 60, 0]) + box_left), 1)
+    assert np.ptp(cols[cols >= 300]) > 3 * np.ptp(cols[cols < 300]) > 0
