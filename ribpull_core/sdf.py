@@ -307,7 +307,7 @@ def signed_distance_volume(
     covers the volume, and is placed so that the voxel centres are nodes of it: an axis-aligned volume
     whose spacing is a multiple of grid_mm is then measured on the grid itself, `node_distances`,
     with the same values as point queries at the voxel centres). Sign: inside_score > field.level.
-    The network is only queried where it matters: voxels within 1.5 voxel diagonals of the surface
+    The network is only queried where it matters: voxels within the longest voxel edge of the surface
     get the field's own sign; the other voxels form connected regions (6-connectivity) that cannot
     cross the surface, and each takes the majority sign of the field at up to `votes` random voxels
     of it. Voxels outside the mesh's bounding box are outside (the mesh is closed at its meshing
@@ -330,7 +330,13 @@ def signed_distance_volume(
     )
     if should_cancel is not None and should_cancel():
         raise JobCanceled("canceled")
-    band = 1.5 * float(np.linalg.norm(spacing))
+    # Two 6-neighbours on either side of the surface are at most the longest voxel edge h apart, so
+    # one of them lies within h / 2 of it: a band of h keeps every far region on one side with h / 2
+    # to spare for the distances' error. 1.5 voxel diagonals before: field queries 0.93M -> 0.58M on
+    # the 0.75 x 0.75 x 2.5 mm map, 0.37M -> 0.14M on the 1.5 mm one (SDF 4.3 -> 3.9 s, 2.1 -> 2.0 s
+    # alone), the same volumes but for 2 of 5.4M voxels of the sternum map, 2.4 mm from the mesh,
+    # where the field's sign differed from its region's
+    band = float(spacing.max())
     on_nodes = _voxels_on_nodes(shape, affine, dist)
     aligned = _axis_aligned(affine)
     if aligned:  # outside the mesh's box along any axis: from the axes' coordinates alone
