@@ -166,6 +166,29 @@ class _Reporter:
             self.progress(PipelineProgress(stage=stage, fraction=self._fraction, **kw))
 
 
+def _label_map_samples(voxels, config, seed: int):
+    """What the fit takes from a label map (a PointCloud of its voxel centres, mm) under a
+    LabelMapConfig: its boundary points (`mask_boundary_cloud`), with the occupancy of the voxel
+    centres near the boundary (`mask_band_samples`, band_voxels > 0) and the solid's coarse signed
+    distance (`mask_signed_distance`, solid_distance_cell_mm > 0). The band samples are made in a
+    thread beside the boundary points (both read the map alone; their single-threaded numpy
+    overlaps: 0.75 x 0.75 x 2.5 mm map ~0.6 + 0.6 s)."""
+    from .pointcloud import mask_band_samples, mask_boundary_cloud, mask_signed_distance
+
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="ribpull-band") as pool:
+        band_job = pool.submit(mask_band_samples, voxels, width_voxels=config.band_voxels, seed=seed) \
+            if config.band_voxels > 0 else None
+        cloud = mask_boundary_cloud(voxels, seed=seed, subvoxel_sigma_mm=config.boundary_sigma_mm,
+                                    between_labels=config.between_labels)
+        if band_job is not None:  # voxel centres near the boundary: occupancy the map states
+            band = band_job.result()
+            cloud = replace(cloud, occupancy_points=band.occupancy_points, occupancy_inside=band.occupancy_inside,
+                            occupancy_distance_mm=band.occupancy_distance_mm)
+    if config.solid_distance_cell_mm > 0:  # the map's solid, a warm start for the field
+        cloud = mask_signed_distance(voxels, cloud, config.solid_distance_cell_mm)
+    return cloud
+
+
 def _reference_for_metrics(options: PipelineOptions, cloud):
     """The reference surface for the metrics: a user-given mesh/points file, else the input points."""
     if options.reference is None:
@@ -239,7 +262,6 @@ def run_pipeline(
     """
     from .io import load_point_cloud
     from .methods import build_fit_config
-    from .pointcloud import mask_band_samples, mask_boundary_cloud, mask_signed_distance
     from .refine import point_weights_of, refinement_patches
 
     options = options or PipelineOptions()
@@ -283,14 +305,7 @@ def run_pipeline(
                 generated_study = GeneratedStudy.from_label_cloud(cloud)  # refuses a point cloud
             if cloud.nifti_affine is not None:
                 # a label map's voxel centres fill the solid: fit (and score against) its boundary
-                lm = fit_config.label_map
-                voxels = cloud
-                if lm.band_voxels > 0:  # voxel centres near the boundary: occupancy the map states
-                    cloud = mask_band_samples(cloud, width_voxels=lm.band_voxels, seed=options.seed)
-                cloud = mask_boundary_cloud(cloud, seed=options.seed, subvoxel_sigma_mm=lm.boundary_sigma_mm,
-                                            between_labels=lm.between_labels)
-                if lm.solid_distance_cell_mm > 0:  # the map's solid, a warm start for the field
-                    cloud = mask_signed_distance(voxels, cloud, lm.solid_distance_cell_mm)
+                cloud = _label_map_samples(cloud, fit_config.label_map, options.seed)
             reference, reference_name = _reference_for_metrics(options, cloud)
         with timed("fit"), ThreadPoolExecutor(max_workers=1, thread_name_prefix="ribpull-patches") as pool:
             refine_plan = _plan_refinement(cloud, fit_config, options)
