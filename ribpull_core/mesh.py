@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import torch
 import trimesh
+from numba import njit, prange
 from skimage import measure
 
 from .config import MeshConfig
@@ -77,16 +78,32 @@ def _double_areas(tri: np.ndarray) -> np.ndarray:
 
 
 def _sample_triangles(tri: np.ndarray, area2: np.ndarray, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """n area-uniform random points ((n, 3), same units) on (F, 3, 3) triangles with (F,) twice their
+    areas, and each one's triangle index (n,), in triangle order."""
     cum = np.cumsum(area2)
     rng = np.random.default_rng(seed)
     u = np.sort(rng.random(n)) * cum[-1]
     fi = np.minimum(np.searchsorted(cum, u), len(tri) - 1)
-    r = rng.random((n, 2))
-    flip = r.sum(1) > 1.0  # fold the unit square onto the triangle
-    r[flip] = 1.0 - r[flip]
-    t = tri[fi]
-    pts = t[:, 0] + r[:, :1] * (t[:, 1] - t[:, 0]) + r[:, 1:] * (t[:, 2] - t[:, 0])
-    return pts, fi
+    return points_on_triangles(np.ascontiguousarray(tri, dtype=np.float64), fi, rng.random((n, 2))), fi
+
+
+@njit(parallel=True, cache=True)
+def points_on_triangles(tri, fi, r):  # pragma: no cover - compiled
+    """(n, 3) points on (F, 3, 3) triangles: point i on triangle fi[i] at t0 + a (t1 - t0) + b (t2 - t0),
+    (a, b) = r[i] (n, 2) uniforms in the unit square, folded onto the triangle where a + b > 1.
+    Why compiled: numpy's (n, 3, 3) gather of the triangles and its temporaries took 0.23-0.29 s
+    of the SDF's 1M samples on a 355k-face mesh, this 0.09 s (the same numbers)."""
+    n = fi.shape[0]
+    out = np.empty((n, 3))
+    for i in prange(n):
+        f = fi[i]
+        a, b = r[i, 0], r[i, 1]
+        if a + b > 1.0:  # fold the unit square onto the triangle
+            a, b = 1.0 - a, 1.0 - b
+        for k in range(3):
+            t0 = tri[f, 0, k]
+            out[i, k] = t0 + a * (tri[f, 1, k] - t0) + b * (tri[f, 2, k] - t0)
+    return out
 
 
 # --- grid helpers ----------------------------------------------------------------------------------
