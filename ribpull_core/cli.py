@@ -116,6 +116,7 @@ def cmd_warmup(args: argparse.Namespace) -> int:
     print(f"warm-up done in {time.perf_counter() - t:.1f} s: numba's kernels are compiled and cached")
     return 0
 
+
 def _spacing_arg(text: str) -> float | tuple[float, float, float]:
     """--spacing: one voxel size in mm ("1.5") or three comma-separated ones ("0.75,0.75,2.5")."""
     try:

@@ -77,15 +77,9 @@ def rasterize_triangles(tri_px, colors, height, width, background):  # pragma: n
 
 
 def _signed_axis(points: np.ndarray, axis: int) -> np.ndarray:
-    """(..., 3) points -> (...) their coordinate along a signed axis of VIEWS (-1 - k: minus axis k)."""
+    """(..., 3) points -> (...) their coordinate along a signed axis of VIEWS (-1 - k: minus axis k).
+    Of np.eye(3): the axis's unit vector (3,), e.g. a view's direction towards its camera."""
     return points[..., axis] if axis >= 0 else -points[..., -1 - axis]
-
-
-def _view_direction(depth_axis: int) -> np.ndarray:
-    """(3,) unit vector from the scene towards the camera of a view whose depth is `depth_axis`."""
-    d = np.zeros(3)
-    d[depth_axis if depth_axis >= 0 else -1 - depth_axis] = 1.0 if depth_axis >= 0 else -1.0
-    return d
 
 
 def _view_pixels(points_mm: np.ndarray, axes: tuple[int, int, int], centre_mm: np.ndarray, half_mm: float,
@@ -144,7 +138,7 @@ def render_preview(
             continue
         if tri is not None:
             tri_px = _view_pixels(tri, axes, centre, half, px_per_mm)
-            image = rasterize_triangles(np.ascontiguousarray(tri_px), _shade(fn, _view_direction(axes[2]), MESH_RGB),
+            image = rasterize_triangles(np.ascontiguousarray(tri_px), _shade(fn, _signed_axis(np.eye(3), axes[2]), MESH_RGB),
                                         VIEW_PX, VIEW_PX, np.ones(3))
             canvas.paste(Image.fromarray(np.round(image * 255).astype(np.uint8)), (left, VIEW_TOP))
         for p in polylines:
