@@ -8,7 +8,13 @@ import trimesh
 
 from ribpull_core.errors import RibPullInputError
 from ribpull_core.fields import NeuralPullMLP
-from ribpull_core.metrics import compression_metrics, estimate_normals, mesh_summary, surface_metrics
+from ribpull_core.metrics import (
+    compression_metrics,
+    estimate_normals,
+    mesh_summary,
+    morton_order,
+    surface_metrics,
+)
 from ribpull_core.pointcloud import PointCloud
 
 N = 200_000
@@ -116,3 +122,24 @@ def test_mesh_summary_matches_trimesh():
         assert s["area_mm2"] == pytest.approx(m.area, rel=1e-12)
         assert (s["volume_mm3"] is None) if not m.is_watertight else s["volume_mm3"] == pytest.approx(m.volume, rel=1e-9)
     assert mesh_summary(pinched)["components"] == 2 and not mesh_summary(pinched)["watertight"]
+
+
+def test_morton_order_follows_the_z_curve_and_keeps_ties_in_input_order():
+    # 1024 cells per axis over the longest side: x is the lowest bit, then y, then z
+    pts = np.array([[1.0, 1, 1], [0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [0, 0, 0]])
+    order = morton_order(pts)
+    assert order.dtype == np.int64
+    np.testing.assert_array_equal(order, [1, 5, 2, 3, 4, 0])  # the two origins keep their order
+    rng = np.random.default_rng(3)
+    cloud = rng.normal(size=(5000, 3))
+    o = morton_order(cloud)
+    np.testing.assert_array_equal(np.sort(o), np.arange(5000))  # a permutation
+    assert len(morton_order(np.zeros((0, 3)))) == 0
+
+
+def test_estimate_normals_of_a_plane_and_too_few_points():
+    rng = np.random.default_rng(4)
+    pts = np.c_[rng.random((500, 2)) * 10, np.zeros(500)]
+    np.testing.assert_allclose(np.abs(estimate_normals(pts)[:, 2]), 1.0, atol=1e-9)
+    with pytest.raises(RibPullInputError):
+        estimate_normals(pts[:2])

@@ -37,6 +37,7 @@ from ..losses import (
 )
 from ..pointcloud import distance_to_points, sampling_gap
 from ..quadrics import LocalQuadrics, fit_local_quadrics, pca_normals, project_onto_quadrics
+from ..volume_kernels import mark_offsets
 from .base import FittedField, KnownOccupancy, Method, knn_sigma, sample_pull_queries
 from .training import ScheduleConfig
 
@@ -346,10 +347,7 @@ def outside_mask(points_unit: np.ndarray, block_factor: float = 1.0, max_cells: 
     # voxels whose centre lies within block + half a voxel of slack of a voxel holding a point: a
     # ball stamped around each such voxel (the same set as thresholding a distance transform of
     # the whole volume, for a fraction of its cost: the points occupy few voxels)
-    blocked = np.zeros(shape, bool)
-    for offset in _ball_offsets(block / spacing + 0.5):
-        cells = np.clip(ijk + offset, 0, shape - 1)
-        blocked[cells[:, 0], cells[:, 1], cells[:, 2]] = True
+    blocked = mark_offsets(shape.astype(np.int64), ijk.astype(np.int64), _ball_offsets(block / spacing + 0.5))
     labels, n_labels = ndimage.label(~blocked)
     border = np.unique(np.concatenate([labels[[0, -1]].ravel(), labels[:, [0, -1]].ravel(), labels[:, :, [0, -1]].ravel()]))
     reaches_border = np.zeros(n_labels + 1, bool)  # a lookup per label: np.isin sorts the whole volume

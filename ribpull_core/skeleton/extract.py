@@ -16,6 +16,7 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from ribpull_core.errors import RibPullInputError
+from ribpull_core.quadrics import pca_normals
 from ribpull_core.skeleton import curves as cv
 from ribpull_core.skeleton.components import auto_link_mm, find_components, validate_points
 from ribpull_core.skeleton.contraction import laplacian_contraction
@@ -24,15 +25,6 @@ from ribpull_core.skeleton.model import RibCurve, Skeleton, SkeletonConfig
 
 DistanceFn = Callable[[np.ndarray], np.ndarray]
 Progress = Callable[[float, str], None]
-
-
-def estimate_normals(points_mm: np.ndarray, k: int = 10) -> np.ndarray:
-    """(N, 3) unit normals (unsigned) from PCA of each point's k nearest neighbours."""
-    _, idx = cKDTree(points_mm).query(points_mm, k=min(k, len(points_mm)))
-    nb = points_mm[idx] - points_mm[idx].mean(axis=1, keepdims=True)
-    cov = np.einsum("nki,nkj->nij", nb, nb)
-    _, vec = np.linalg.eigh(cov)
-    return vec[:, :, 0]
 
 
 def surface_distance_fn(points_mm: np.ndarray, normals: np.ndarray | None = None, k: int = 8) -> DistanceFn:
@@ -45,7 +37,7 @@ def surface_distance_fn(points_mm: np.ndarray, normals: np.ndarray | None = None
     20k points: bias +0.01 mm); sample noise of std s biases it low by about 0.7 s.
     """
     tree = cKDTree(points_mm)
-    nrm = estimate_normals(points_mm) if normals is None else normals
+    nrm = pca_normals(points_mm, k=10) if normals is None else normals
     nrm = nrm / np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
     kk = int(min(k, len(points_mm)))
 
