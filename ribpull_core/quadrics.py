@@ -64,23 +64,27 @@ def _least_axes(points, nn):  # pragma: no cover - compiled
     point's neighbours points[nn[i]] (nn (N, k) int64). One pass per point instead of numpy's
     (N, k, 3) centred copies and batched eigh: a label map's 120k boundary points at k = 16
     0.43-0.73 -> 0.20 s, the same axes to 2e-15 with the same signs."""
-    n, k = nn.shape
-    out = np.empty((n, 3))
-    for q in prange(n):
-        m = np.zeros(3)
-        for t in range(k):
-            for a in range(3):
-                m[a] += points[nn[q, t], a]
-        m /= k
-        cov = np.zeros((3, 3))
-        for t in range(k):
-            d = points[nn[q, t]] - m
-            for a in range(3):
-                for b in range(a, 3):
-                    cov[a, b] += d[a] * d[b]
-        cov[1, 0], cov[2, 0], cov[2, 1] = cov[0, 1], cov[0, 2], cov[1, 2]
-        out[q] = np.linalg.eigh(cov)[1][:, 0]
+    out = np.empty((nn.shape[0], 3))
+    for q in prange(nn.shape[0]):
+        out[q] = np.linalg.eigh(_centroid_and_scatter(points, nn[q])[1])[1][:, 0]
     return out
+
+
+@njit(inline="always")
+def _centroid_and_scatter(points, idx):  # pragma: no cover - compiled
+    """((3,) centroid, (3, 3) scatter sum (x - c)(x - c)^T) of the points points[idx], float64."""
+    c = np.zeros(3)
+    for t in range(idx.shape[0]):
+        c += points[idx[t]]
+    c /= idx.shape[0]
+    cov = np.zeros((3, 3))
+    for t in range(idx.shape[0]):
+        x = points[idx[t]] - c
+        for a in range(3):
+            for b in range(a, 3):
+                cov[a, b] += x[a] * x[b]
+    cov[1, 0], cov[2, 0], cov[2, 1] = cov[0, 1], cov[0, 2], cov[1, 2]
+    return c, cov
 
 
 def fit_local_quadrics(points: np.ndarray, k: int = 20,
@@ -130,17 +134,7 @@ def _height_fields(pts, nn, radius, point_weights):  # pragma: no cover - compil
     residual = np.empty(n)
     weighted = point_weights.shape[0] > 0
     for i in prange(n):
-        c = np.zeros(3)
-        for t in range(k):
-            c += pts[nn[i, t]]
-        c /= k
-        cov = np.zeros((3, 3))
-        for t in range(k):
-            x = pts[nn[i, t]] - c
-            for a in range(3):
-                for b in range(a, 3):
-                    cov[a, b] += x[a] * x[b]
-        cov[1, 0], cov[2, 0], cov[2, 1] = cov[0, 1], cov[0, 2], cov[1, 2]
+        c, cov = _centroid_and_scatter(pts, nn[i])
         vecs = np.linalg.eigh(cov)[1]
         rot = np.empty((3, 3))
         for a in range(3):  # rows: largest (e1), middle (e2), least (n)
