@@ -2,7 +2,8 @@
 
 `mark_offsets` marks a fixed stencil of voxels around each of many cells: the blocked shell of the
 flood fill (a ball around every cell holding an input point) and the SDF grid's near nodes (a box
-around every cell holding a surface sample).
+around every cell holding a surface sample). `within_l1` is a dilation by the 6-neighbour cross
+repeated r times (the flood fill's free space near the shell).
 """
 
 from __future__ import annotations
@@ -27,3 +28,41 @@ def mark_offsets(shape, cells, offsets):  # pragma: no cover - compiled
             k = min(max(cells[q, 2] + offsets[t, 2], 0), shape[2] - 1)
             out[i, j, k] = True
     return out
+
+
+@njit(parallel=True, cache=True)
+def within_l1(mask, radius):  # pragma: no cover - compiled
+    """(X, Y, Z) bool: the voxels within `radius` steps along the axes (city-block distance) of a
+    True voxel of the (X, Y, Z) bool `mask` - what scipy.ndimage.binary_dilation(mask,
+    iterations=radius) gives with its default 6-neighbour cross. The city-block distance is
+    separable: per axis, two sweeps along every line (parallel across lines) of d = min(d,
+    neighbour + 1), capped at radius + 1 (int16). One pass per axis instead of `radius` full-volume
+    dilations (the flood fill's free space at radius 8 on a label map's 23M voxels ~0.4 s -> ~0.1 s)."""
+    n0, n1, n2 = mask.shape
+    cap = np.int16(radius + 1)
+    d = np.empty((n0, n1, n2), dtype=np.int16)
+    for i in prange(n0):
+        for j in range(n1):
+            for k in range(n2):
+                d[i, j, k] = 0 if mask[i, j, k] else cap
+            for k in range(1, n2):
+                d[i, j, k] = min(d[i, j, k], d[i, j, k - 1] + 1)
+            for k in range(n2 - 2, -1, -1):
+                d[i, j, k] = min(d[i, j, k], d[i, j, k + 1] + 1)
+    for i in prange(n0):
+        for k in range(n2):
+            for j in range(1, n1):
+                d[i, j, k] = min(d[i, j, k], d[i, j - 1, k] + 1)
+            for j in range(n1 - 2, -1, -1):
+                d[i, j, k] = min(d[i, j, k], d[i, j + 1, k] + 1)
+    out = np.empty((n0, n1, n2), dtype=np.bool_)
+    for j in prange(n1):
+        for k in range(n2):
+            for i in range(1, n0):
+                d[i, j, k] = min(d[i, j, k], d[i - 1, j, k] + 1)
+            for i in range(n0 - 2, -1, -1):
+                d[i, j, k] = min(d[i, j, k], d[i + 1, j, k] + 1)
+            for i in range(n0):
+                out[i, j, k] = d[i, j, k] <= radius
+    return out
+

@@ -464,19 +464,3 @@ def test_points_on_triangles_match_the_numpy_formula():
     assert flip.any() and (~flip).any()
     np.testing.assert_array_equal(points_on_triangles(tri, fi, r), expected)
 
-
-def test_mark_offsets_is_the_numpy_stencil_loop_with_clipping():
-    from ribpull_core.volume_kernels import mark_offsets
-
-    rng = np.random.default_rng(5)
-    shape = np.array([9, 7, 5], dtype=np.int64)
-    cells = rng.integers(-1, 10, size=(40, 3)).astype(np.int64)  # some outside: clipped onto the faces
-    offsets = np.array(list(np.ndindex(3, 3, 3)), dtype=np.int64) - 1
-    want = np.zeros(shape, dtype=bool)
-    for off in offsets:
-        c = np.clip(cells + off, 0, shape - 1)
-        want[c[:, 0], c[:, 1], c[:, 2]] = True
-    got = mark_offsets(shape, cells, offsets)
-    assert got.shape == tuple(shape) and got.dtype == bool
-    np.testing.assert_array_equal(got, want)
-    assert not mark_offsets(shape, np.zeros((0, 3), np.int64), offsets).any()
