@@ -66,3 +66,39 @@ def within_l1(mask, radius):  # pragma: no cover - compiled
                 out[i, j, k] = d[i, j, k] <= radius
     return out
 
+
+
+@njit(parallel=True, cache=True)
+def nearest_other_class(inside, candidates, offsets, offset_mm, spacing_mm):  # pragma: no cover - compiled
+    """(M,) float64 distance (mm) from each candidate voxel (C-order flat indices (M,) int64 into the
+    (X, Y, Z) bool `inside`) to the nearest voxel centre of the other class, through the voxel
+    spacing (3,) mm; inf where none lies within the window. offsets (K, 3) int64: the window,
+    sorted by their length offset_mm (K,) (ascending): the first voxel of the other class met is
+    the nearest; offsets as long as it (to 1e-9) are read too, and the shortest distance as a kd-tree
+    computes it (coordinates index x spacing, squared differences summed over the axes in order)
+    is kept, so the value is the one cKDTree.query returns bit for bit."""
+    n0, n1, n2 = inside.shape
+    out = np.full(candidates.shape[0], np.inf)
+    for q in prange(candidates.shape[0]):
+        f = candidates[q]
+        i = f // (n1 * n2)
+        r = f - i * (n1 * n2)
+        j = r // n2
+        k = r - j * n2
+        mine = inside[i, j, k]
+        best = np.inf
+        hit = np.inf
+        for t in range(offsets.shape[0]):
+            if offset_mm[t] > hit:
+                break
+            ii, jj, kk = i + offsets[t, 0], j + offsets[t, 1], k + offsets[t, 2]
+            if ii < 0 or jj < 0 or kk < 0 or ii >= n0 or jj >= n1 or kk >= n2 or inside[ii, jj, kk] == mine:
+                continue
+            if hit == np.inf:
+                hit = offset_mm[t] * (1.0 + 1e-9) + 1e-12
+            d0 = np.float64(i) * spacing_mm[0] - np.float64(ii) * spacing_mm[0]
+            d1 = np.float64(j) * spacing_mm[1] - np.float64(jj) * spacing_mm[1]
+            d2 = np.float64(k) * spacing_mm[2] - np.float64(kk) * spacing_mm[2]
+            best = min(best, d0 * d0 + d1 * d1 + d2 * d2)
+        out[q] = np.sqrt(best)
+    return out

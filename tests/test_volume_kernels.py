@@ -31,3 +31,4 @@ def test_within_l1_is_the_repeated_cross_dilation(shape, fill):
     for radius in (1, 3, 8):
         np.testing.assert_array_equal(within_l1(mask, radius), ndimage.binary_dilation(mask, iterations=radius))
     assert not within_l1(np.zeros(shape, bool), 8).any()
+
