@@ -211,11 +211,10 @@ def warmup_cosine_lr(iteration: int, total: int, base_lr: float, warmup: int, fi
 def knn_sigma(points: np.ndarray, k: int = 50, tree: cKDTree | None = None) -> np.ndarray:
     """(N,) distance from each point to its k-th nearest neighbour (Neural-Pull's local scale);
     tree: a kd-tree of `points` to reuse."""
-    k = int(min(k, len(points) - 1))
-    # only the (k+1)-th column (the point itself is the first): not the (N, k+1) distances and
-    # indices (86 MB for a label map's 105k boundary points at k = 50)
-    d, _ = (tree if tree is not None else cKDTree(points)).query(points, k=[k + 1], workers=-1)
-    return d[:, 0]
+    from ..neighbours import kth_neighbour_distance
+
+    # the (k+1)-th point (the point itself is the first), on a cell grid: the kd-tree's values
+    return kth_neighbour_distance(points, int(min(k, len(points) - 1)) + 1, tree)
 
 
 def sample_pull_queries(
