@@ -25,12 +25,7 @@ from .mesh import _double_areas, _sample_triangles, inside_scores, sample_surfac
 from .methods.base import FittedField
 from .metrics import morton_order
 from .pointcloud import PointCloud
-from .sdf_kernels import (
-    flat_voxel_centres,
-    grid_upper_bounds,
-    propagate_closest_points,
-    relax_step,
-)
+from .sdf_kernels import flat_voxel_centres, grid_upper_bounds, propagate_closest_points, relax_step
 from .triangle_distance import closest_points
 from .volume_kernels import mark_offsets
 
