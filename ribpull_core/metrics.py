@@ -10,54 +10,13 @@ from __future__ import annotations
 import numpy as np
 import torch
 import trimesh
-from numba import njit, prange
 from scipy.spatial import cKDTree
 
 from .errors import RibPullInputError
+from .neighbours import morton_order
 from .pointcloud import PointCloud
 from .quadrics import pca_normals
 from .triangle_distance import distance_to_surface
-
-
-@njit(inline="always")
-def _spread_bits(x):  # pragma: no cover - compiled
-    """The 10 low bits of x spaced two zero bits apart (bit b moves to bit 3b)."""
-    x = x & 0x3FF
-    x = (x | (x << 16)) & 0x30000FF
-    x = (x | (x << 8)) & 0x300F00F
-    x = (x | (x << 4)) & 0x30C30C3
-    return (x | (x << 2)) & 0x9249249
-
-
-@njit(parallel=True, cache=True)
-def _morton_codes(p, lo, ext):  # pragma: no cover - compiled
-    """(N,) int64 Z-order codes of (N, 3) float64 points: each axis cut into 1024 cells of ext / 1024
-    from lo (3,), its cell index's bits interleaved. One pass instead of numpy's ~20 full-array
-    temporaries (1.2M SDF samples ~0.3 s -> ~0.01 s), the same codes."""
-    out = np.empty(p.shape[0], dtype=np.int64)
-    for q in prange(p.shape[0]):
-        code = np.int64(0)
-        for a in range(3):
-            c = np.int64((p[q, a] - lo[a]) / ext * 1023.999)
-            code |= _spread_bits(min(max(c, 0), 1023)) << a
-        out[q] = code
-    return out
-
-
-def morton_order(points: np.ndarray) -> np.ndarray:
-    """(N, 3) -> (N,) permutation sorting points along a Z-order curve (1024 cells per axis).
-
-    Kd-tree builds and queries on spatially sorted points are several times faster (cache locality:
-    0.8 s instead of 5.2 s for 1M x 1M surface samples here)."""
-    p = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
-    if len(p) == 0:
-        return np.zeros(0, dtype=np.int64)
-    ext = max(float(np.ptp(p, axis=0).max()), 1e-300)
-    # code x 2^32 + index: unique keys, so one plain sort gives the stable argsort's order (codes
-    # have 30 bits; ~3x faster than argsort(kind="stable") on 1.2M codes)
-    keys = (_morton_codes(p, p.min(axis=0), ext) << 32) | np.arange(len(p), dtype=np.int64)
-    keys.sort()
-    return keys & 0xFFFFFFFF
 
 
 def sample_mesh(mesh: trimesh.Trimesh, n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:

@@ -307,14 +307,21 @@ def distance_to_points(points: np.ndarray, queries: np.ndarray, tree, exact_with
     (~2.2 s this way, exact within 5 % of the extent), while their hinge margin only grows with the distance (`free_margin`)."""
     from scipy.spatial import cKDTree
 
+    from .neighbours import morton_order
+
     if len(queries) == 0:
         return np.zeros(0, np.float32)
-    d = tree.query(queries, k=1, workers=-1, distance_upper_bound=exact_within)[0]
+    # asked along the Z curve (random free-space points): the same distances, ~40 % less time
+    order = morton_order(queries)
+    q = queries[order]
+    d = tree.query(q, k=1, workers=-1, distance_upper_bound=exact_within)[0]
     far = ~np.isfinite(d)
     if far.any():
         keep = np.random.default_rng(0).choice(len(points), max(1, len(points) // subsample), replace=False)
-        d[far] = cKDTree(points[keep]).query(queries[far], k=1, workers=-1)[0]
-    return d.astype(np.float32)
+        d[far] = cKDTree(points[keep]).query(q[far], k=1, workers=-1)[0]
+    out = np.empty(len(d), np.float32)
+    out[order] = d
+    return out
 
 
 def band_distances(inside: np.ndarray, spacing_mm: np.ndarray, reach_mm: float) -> tuple[np.ndarray, np.ndarray]:

@@ -23,7 +23,7 @@ from .errors import JobCanceled
 from .frame import UnitFrame
 from .mesh import _double_areas, _sample_triangles, inside_scores, sample_surface_fast  # noqa: F401
 from .methods.base import FittedField
-from .metrics import morton_order
+from .neighbours import morton_order
 from .pointcloud import PointCloud
 from .sdf_kernels import flat_voxel_centres, grid_upper_bounds, propagate_closest_points, relax_step
 from .triangle_distance import closest_points

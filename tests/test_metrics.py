@@ -12,9 +12,9 @@ from ribpull_core.metrics import (
     compression_metrics,
     estimate_normals,
     mesh_summary,
-    morton_order,
     surface_metrics,
 )
+from ribpull_core.neighbours import morton_order
 from ribpull_core.pointcloud import PointCloud
 
 N = 200_000

@@ -232,6 +232,12 @@ def test_free_space_distances_are_exact_near_and_an_upper_bound_far():
     assert near.any() and (~near).any()
     assert np.allclose(d[near], exact[near], atol=1e-6)
     assert (d[~near] >= exact[~near] - 1e-6).all() and (d[~near] <= exact[~near] + 0.05).all()
+    # asked along the Z curve: the values of the queries asked in their own order, bit for bit
+    within = tree.query(queries, k=1, distance_upper_bound=0.2)[0]
+    far = ~np.isfinite(within)
+    keep = np.random.default_rng(0).choice(len(pts), len(pts) // 16, replace=False)
+    within[far] = cKDTree(pts[keep]).query(queries[far], k=1)[0]
+    np.testing.assert_array_equal(d, within.astype(np.float32))
 
 
 def test_paper_preset_runs_a_few_iterations():
