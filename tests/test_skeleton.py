@@ -25,7 +25,13 @@ from ribpull_core.skeleton import (
     skeleton_metrics,
     skeletonize,
 )
-from ribpull_core.skeleton.curves import arc_length, resample_polyline, rotation_minimizing_frames
+from ribpull_core.skeleton.curves import (
+    arc_length,
+    ball_sample,
+    resample_polyline,
+    rotation_minimizing_frames,
+    tree_paths,
+)
 from ribpull_core.skeleton.labels import (
     geometric_labels,
     label_name,
@@ -352,3 +358,76 @@ def test_metrics_of_the_truth_itself_and_ribseg_layout():
     y = Skeleton(np.eye(4)[:, :3], [[0, 1], [0, 2], [0, 3]], np.ones(4))
     m4 = skeleton_metrics(y, {"x": a})
     assert (m4["n_paths"], m4["n_branch_nodes"], m4["n_cycles"]) == (3, 1, 0)
+
+
+def test_ball_sample_matches_the_numpy_farthest_point_loop_ties_included():
+    def numpy_ball_sample(points, radius):  # the loop the compiled kernel replaced
+        first = int(np.argmax(np.linalg.norm(points - points.mean(axis=0), axis=1)))
+        samples, dist = [first], np.linalg.norm(points - points[first], axis=1)
+        assign = np.zeros(len(points), dtype=np.int64)
+        while dist.max() > radius:
+            far = int(np.argmax(dist))
+            d_new = np.linalg.norm(points - points[far], axis=1)
+            closer = d_new < dist
+            assign[closer] = len(samples)
+            dist = np.where(closer, d_new, dist)
+            samples.append(far)
+        return np.asarray(samples), assign
+
+    rng = np.random.default_rng(5)
+    t = np.linspace(0.0, 6.0, 3000)
+    arc = np.c_[100 * np.cos(t), 80 * np.sin(t), 5 * t] + rng.normal(0.0, 1.5, (3000, 3))
+    for points in (arc, np.round(arc)):  # rounded coordinates: equal distances, first one wins
+        samples, assign = ball_sample(points, 3.0)
+        want_samples, want_assign = numpy_ball_sample(points, 3.0)
+        np.testing.assert_array_equal(samples, want_samples)
+        np.testing.assert_array_equal(assign, want_assign)
+        assert np.linalg.norm(points - points[samples][assign], axis=1).max() <= 3.0
+    samples, assign = ball_sample(np.zeros((4, 3)), 1.0)  # one point's ball holds them all
+    assert list(samples) == [0] and not assign.any()
+
+
+def test_tree_paths_match_the_networkx_dijkstra_walks():
+    import networkx as nx
+    from scipy.sparse.csgraph import minimum_spanning_tree
+    from scipy.spatial.distance import cdist
+
+    def networkx_tree_paths(tree, pos, min_branch, clearance):  # the walks the adjacency lists replaced
+        d0 = nx.single_source_dijkstra_path_length(tree, next(iter(tree.nodes)))
+        dist_a, paths_a = nx.single_source_dijkstra(tree, max(d0, key=d0.get))
+        paths = [paths_a[max(dist_a, key=dist_a.get)]]
+        covered = set(paths[0])
+        while len(covered) < tree.number_of_nodes():
+            cov_tree, best = cKDTree(pos[sorted(covered)]), None
+            for comp in nx.connected_components(tree.subgraph(set(tree.nodes) - covered)):
+                attach = next(c for n in comp for c in tree.neighbors(n) if c in covered)
+                dist, pth = nx.single_source_dijkstra(tree.subgraph(set(comp) | {attach}), attach)
+                path = pth[max(dist, key=dist.get)]
+                clear = cov_tree.query(pos[path])[0] > clearance
+                outside = float(np.linalg.norm(np.diff(pos[path], axis=0), axis=1)[clear[:-1] & clear[1:]].sum())
+                if best is None or outside > best[0]:
+                    best = (outside, path)
+            if best[0] < min_branch:
+                break
+            paths.append(best[1])
+            covered.update(best[1])
+        return paths
+
+    rng = np.random.default_rng(11)
+    for trial in range(4):
+        # a rib-like arc with two side strands, scattered: its spanning tree has a trunk, branches and spurs
+        t = rng.uniform(0.0, 3.0, 300)
+        arc = np.c_[100 * np.cos(t), 80 * np.sin(t), np.zeros_like(t)]
+        side = np.c_[rng.uniform(0, 40, 80), np.zeros(80), rng.uniform(0, 30, 80)] + arc[:80]
+        pos = np.vstack([arc, side]) + rng.normal(0.0, 1.0, (380, 3))
+        mst = minimum_spanning_tree(cdist(pos, pos)).tocoo()
+        tree = nx.Graph()
+        tree.add_nodes_from(rng.permutation(len(pos)).tolist())  # node order is not id order
+        tree.add_weighted_edges_from(zip(mst.row.tolist(), mst.col.tolist(), mst.data.tolist()))
+        got = tree_paths(tree, pos, 5.0, 4.0)
+        assert got == networkx_tree_paths(tree, pos, 5.0, 4.0)
+        assert len(got) >= 2  # the side strands come out as branches
+    assert tree_paths(nx.Graph(), np.zeros((0, 3)), 5.0) == []
+    single = nx.Graph()
+    single.add_node(3)
+    assert tree_paths(single, np.zeros((4, 3)), 5.0) == [[3]]

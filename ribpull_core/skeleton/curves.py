@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import networkx as nx
 import numpy as np
+from numba import njit
 from scipy import sparse
 from scipy.ndimage import gaussian_filter1d
 from scipy.sparse.csgraph import minimum_spanning_tree
@@ -27,21 +28,46 @@ def ball_sample(points_mm: np.ndarray, radius_mm: float) -> tuple[np.ndarray, np
     Starts from the point farthest from the centroid and repeatedly adds the point farthest from
     all samples until every point is within `radius_mm` of one; points go to their nearest sample.
     """
-    n = len(points_mm)
-    first = int(np.argmax(np.linalg.norm(points_mm - points_mm.mean(axis=0), axis=1)))
-    samples = [first]
-    dist = np.linalg.norm(points_mm - points_mm[first], axis=1)
+    pts = np.ascontiguousarray(points_mm, dtype=np.float64)
+    first = int(np.argmax(np.linalg.norm(pts - pts.mean(axis=0), axis=1)))
+    return _farthest_point_samples(pts, first, float(radius_mm))
+
+
+@njit(cache=True)
+def _farthest_point_samples(points, first, radius):  # pragma: no cover - compiled
+    """`ball_sample`'s loop, compiled: one pass over the points per sample instead of numpy's five
+    temporaries (sternum label map's skeleton, 9 clusters of up to ~8k points: 0.52 -> ~0.02 s).
+    Distances are summed over the axes in order, as numpy's norm sums them, so the samples and the
+    assignment are numpy's (the first farthest point on a tie, as np.argmax)."""
+    n = points.shape[0]
+    dist = np.empty(n)
     assign = np.zeros(n, dtype=np.int64)
+    samples = np.empty(n, dtype=np.int64)
+    samples[0] = first
+    count = 1
+    for i in range(n):
+        dx = points[i, 0] - points[first, 0]
+        dy = points[i, 1] - points[first, 1]
+        dz = points[i, 2] - points[first, 2]
+        dist[i] = np.sqrt(dx * dx + dy * dy + dz * dz)
     while True:
-        far = int(np.argmax(dist))
-        if dist[far] <= radius_mm:
+        far = 0
+        for i in range(1, n):
+            if dist[i] > dist[far]:
+                far = i
+        if dist[far] <= radius:
             break
-        d_new = np.linalg.norm(points_mm - points_mm[far], axis=1)
-        closer = d_new < dist
-        assign[closer] = len(samples)
-        dist = np.where(closer, d_new, dist)
-        samples.append(far)
-    return np.asarray(samples, dtype=np.int64), assign
+        for i in range(n):
+            dx = points[i, 0] - points[far, 0]
+            dy = points[i, 1] - points[far, 1]
+            dz = points[i, 2] - points[far, 2]
+            d = np.sqrt(dx * dx + dy * dy + dz * dz)
+            if d < dist[i]:
+                assign[i] = count
+                dist[i] = d
+        samples[count] = far
+        count += 1
+    return samples[:count].copy(), assign
 
 
 def sample_graph(
@@ -75,32 +101,35 @@ def tree_paths(
     attachment node, while that outside length is at least `min_branch_mm`. Everything else is
     pruned: side spurs, and strands running alongside the main path inside the same tube (a
     half-contracted flat tube is a ribbon that a spanning tree crosses in parallel strands).
+
+    The tree is walked as adjacency lists: in a tree the one path between two nodes is the
+    shortest, so a walk that adds each edge's weight to its parent's distance gives the distances
+    networkx's Dijkstra gives, to the bit, without its subgraph views (sternum map's skeleton: the
+    walks ~0.5 -> ~0.05 s).
     """
-    if tree.number_of_nodes() == 0:
+    nodes = list(tree.nodes)
+    if not nodes:
         return []
-    if tree.number_of_nodes() == 1:
-        return [list(tree.nodes)]
-    start = next(iter(tree.nodes))
-    d0 = nx.single_source_dijkstra_path_length(tree, start)
+    if len(nodes) == 1:
+        return [nodes]
+    adj = {n: [(m, float(d.get("weight", 1.0))) for m, d in tree.adj[n].items()] for n in nodes}
+    d0, _ = _walk(adj, nodes[0])
     a = max(d0, key=d0.get)
-    dist_a, paths_a = nx.single_source_dijkstra(tree, a)
-    b = max(dist_a, key=dist_a.get)
-    paths = [paths_a[b]]
+    dist_a, parent_a = _walk(adj, a)
+    paths = [_path_to(parent_a, max(dist_a, key=dist_a.get))]
     covered = set(paths[0])
-    while True:
-        rest = tree.subgraph(set(tree.nodes) - covered)
-        if rest.number_of_nodes() == 0:
-            break
+    while len(covered) < len(nodes):
         cov_tree = cKDTree(pos_mm[sorted(covered)])
         best = None
-        for comp in nx.connected_components(rest):
-            attach = next((c for n in comp for c in tree.neighbors(n) if c in covered), None)
-            if attach is None:
+        seen = set(covered)
+        for first in nodes:  # each branch off the covered nodes, in the tree's node order
+            if first in seen:
                 continue
-            sub = tree.subgraph(set(comp) | {attach})
-            dist, pth = nx.single_source_dijkstra(sub, attach)
-            far = max(dist, key=dist.get)
-            path = pth[far]
+            branch, attach = _branch_of(adj, first, covered, seen)
+            if attach is None:  # a part not connected to the covered nodes (not a tree)
+                continue
+            dist, parent = _walk(adj, attach, within=branch)
+            path = _path_to(parent, max(dist, key=dist.get))
             clear = cov_tree.query(pos_mm[path])[0] > clearance_mm
             seg = np.linalg.norm(np.diff(pos_mm[path], axis=0), axis=1)
             outside = float(seg[clear[:-1] & clear[1:]].sum())
@@ -111,6 +140,48 @@ def tree_paths(
         paths.append(best[1])
         covered.update(best[1])
     return paths
+
+
+def _walk(adj: dict, source: int, within: set | None = None) -> tuple[dict, dict]:
+    """Distances (mm) from `source` along a tree given as adjacency lists {node: [(neighbour,
+    weight)]}, and each reached node's parent: ({node: distance}, {node: parent}). within: the only
+    nodes to enter besides the source (None: all)."""
+    dist, parent = {source: 0.0}, {source: source}
+    stack = [source]
+    while stack:
+        u = stack.pop()
+        for v, w in adj[u]:
+            if v not in dist and (within is None or v in within):
+                dist[v] = dist[u] + w
+                parent[v] = u
+                stack.append(v)
+    return dist, parent
+
+
+def _path_to(parent: dict, node: int) -> list[int]:
+    """The node ids from a `_walk`'s source to `node`."""
+    path = [node]
+    while parent[path[-1]] != path[-1]:
+        path.append(parent[path[-1]])
+    return path[::-1]
+
+
+def _branch_of(adj: dict, first: int, covered: set, seen: set) -> tuple[set, int]:
+    """The uncovered part of a tree that holds `first` (marked in `seen`), and the one covered
+    node it hangs off (a connected covered part of a tree meets each such branch once; None
+    where it meets none)."""
+    branch, stack, attach = {first}, [first], None
+    seen.add(first)
+    while stack:
+        u = stack.pop()
+        for v, _ in adj[u]:
+            if v in covered:
+                attach = v
+            elif v not in seen:
+                seen.add(v)
+                branch.add(v)
+                stack.append(v)
+    return branch, attach
 
 
 def contracted_paths(
