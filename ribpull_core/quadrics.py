@@ -211,20 +211,81 @@ def project_onto_blended_quadrics(queries: np.ndarray, quadrics: LocalQuadrics, 
     to the next (a single patch per query would leave steps one sampling gap apart). tree: the
     kd-tree of the points the patches were fitted to. `chunk` queries at a time bound the memory.
     Units are those of the points."""
-    q = np.asarray(queries, dtype=np.float64)
+    q = np.ascontiguousarray(queries, dtype=np.float64)
     blend = int(max(1, min(blend, len(quadrics.centre))))
-    e1, e2, normal = (np.ascontiguousarray(quadrics.frame[:, i]) for i in range(3))
+    frame = np.ascontiguousarray(quadrics.frame, dtype=np.float64)
+    centre = np.ascontiguousarray(quadrics.centre, dtype=np.float64)
+    coef = np.ascontiguousarray(quadrics.coef, dtype=np.float64)
+    radius = np.asarray(quadrics.radius, dtype=np.float64)
     out = np.empty_like(q)
     for s in range(0, len(q), chunk):
         qc = q[s:s + chunk]
         dist, nn = tree.query(qc, k=blend, workers=-1)
-        dist, nn = dist.reshape(len(qc), blend), nn.reshape(len(qc), blend)
-        d = qc[:, None] - quadrics.centre[nn]  # (c, b, 3)
-        u, v = (d * e1[nn]).sum(-1), (d * e2[nn]).sum(-1)
-        nb = normal[nn]
-        height = np.einsum("cbi,cbi->cb", _monomials(u, v), quadrics.coef[nn])
-        step = height - (d * nb).sum(-1)  # along each patch's normal, from the query to the patch
-        weight = np.exp(-(dist / np.maximum(quadrics.radius[nn], 1e-12)) ** 2)
-        out[s:s + chunk] = qc + (weight[..., None] * step[..., None] * nb).sum(1) / \
-            np.maximum(weight.sum(1), 1e-300)[:, None]
+        dist, nn = dist.reshape(len(qc), blend), np.ascontiguousarray(nn.reshape(len(qc), blend))
+        # numpy's exp (its own vectorised one: the kernel's would differ in the last bit)
+        weight = np.exp(-(dist / np.maximum(radius[nn], 1e-12)) ** 2)
+        out[s:s + chunk] = _blend_projections(qc, weight, nn, centre, frame, coef)
     return out
+
+
+@njit(parallel=True, cache=True)
+def _blend_projections(queries, weight, nn, centre, frame, coef):  # pragma: no cover - compiled
+    """`project_onto_blended_quadrics` for one chunk: (c, 3) queries, the (c, b) weights of and
+    indices of their b nearest points -> (c, 3) blended projections. One pass per query instead of
+    numpy's (c, b, 6) temporaries (the sternum map's 210k-vertex mesh: 0.49 -> 0.23 s with the kd
+    query), each sum in the order numpy's reductions and einsum take here (`_numpy_order_sum` for
+    the weights): the numpy formula's numbers bit for bit on this machine, within 1e-13 anywhere."""
+    n_query, n_blend = nn.shape
+    out = np.empty((n_query, 3))
+    for i in prange(n_query):
+        acc0, acc1, acc2 = 0.0, 0.0, 0.0
+        for j in range(n_blend):
+            p = nn[i, j]
+            dx = queries[i, 0] - centre[p, 0]
+            dy = queries[i, 1] - centre[p, 1]
+            dz = queries[i, 2] - centre[p, 2]
+            u = dx * frame[p, 0, 0] + dy * frame[p, 0, 1] + dz * frame[p, 0, 2]
+            v = dx * frame[p, 1, 0] + dy * frame[p, 1, 1] + dz * frame[p, 1, 2]
+            nx, ny, nz = frame[p, 2, 0], frame[p, 2, 1], frame[p, 2, 2]
+            # numpy's einsum over the 6 terms sums the even and the odd ones apart, then adds them
+            height = ((coef[p, 0] + v * coef[p, 2]) + (u * v) * coef[p, 4]) \
+                + ((u * coef[p, 1] + (u * u) * coef[p, 3]) + (v * v) * coef[p, 5])
+            step = height - (dx * nx + dy * ny + dz * nz)  # along the patch's normal, to the patch
+            w = weight[i, j]
+            acc0 += w * step * nx
+            acc1 += w * step * ny
+            acc2 += w * step * nz
+        wsum = max(_numpy_order_sum(weight[i]), 1e-300)
+        out[i, 0] = queries[i, 0] + acc0 / wsum
+        out[i, 1] = queries[i, 1] + acc1 / wsum
+        out[i, 2] = queries[i, 2] + acc2 / wsum
+    return out
+
+
+@njit(inline="always")
+def _numpy_order_sum(a):  # pragma: no cover - compiled
+    """The sum of a 1-d float64 array of at most 128 values in the order numpy's sum takes: in
+    order below 8 values, else eight running sums combined pairwise, then the rest in order."""
+    n = a.shape[0]
+    if n < 8:
+        res = 0.0
+        for i in range(n):
+            res += a[i]
+        return res
+    r0, r1, r2, r3, r4, r5, r6, r7 = a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7]
+    i = 8
+    while i + 8 <= n:
+        r0 += a[i]
+        r1 += a[i + 1]
+        r2 += a[i + 2]
+        r3 += a[i + 3]
+        r4 += a[i + 4]
+        r5 += a[i + 5]
+        r6 += a[i + 6]
+        r7 += a[i + 7]
+        i += 8
+    res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+    while i < n:
+        res += a[i]
+        i += 1
+    return res

@@ -4,7 +4,7 @@ than the nearest noisy sample, and bad patches fall back to the samples."""
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ribpull_core.quadrics import fit_local_quadrics, project_onto_quadrics
+from ribpull_core.quadrics import fit_local_quadrics, project_onto_blended_quadrics, project_onto_quadrics
 
 
 def _sphere(n: int, radius: float, noise: float, seed: int) -> np.ndarray:
@@ -90,3 +90,27 @@ def test_facing_counts_the_neighbours_whose_normals_agree():
     np.testing.assert_allclose(patches.facing[holds], 19 / 20)
     assert not patches.one_sided[holds].any() and patches.one_sided[~holds & (np.arange(2000) != 7)].all()
     assert patches.facing[7] == 1 / 20  # its own normal faces only itself
+
+
+def test_blended_projection_matches_the_numpy_formula():
+    pts = _sphere(20_000, 50.0, 0.3, 4)
+    tree = cKDTree(pts)
+    patches = fit_local_quadrics(pts, 16, tree=tree)
+    rng = np.random.default_rng(6)
+    queries = _sphere(3000, 50.0, 0.0, 7) * rng.uniform(0.97, 1.03, (3000, 1))  # near the surface, both sides
+    for blend in (1, 5, 8, 12):  # below, at and past numpy's eight running sums
+        dist, nn = tree.query(queries, k=blend)
+        dist, nn = dist.reshape(len(queries), blend), nn.reshape(len(queries), blend)
+        d = queries[:, None] - patches.centre[nn]
+        e1, e2, normal = (patches.frame[:, i] for i in range(3))
+        u, v = (d * e1[nn]).sum(-1), (d * e2[nn]).sum(-1)
+        terms = np.stack([np.ones_like(u), u, v, u * u, u * v, v * v], axis=-1)
+        step = np.einsum("cbi,cbi->cb", terms, patches.coef[nn]) - (d * normal[nn]).sum(-1)
+        weight = np.exp(-(dist / np.maximum(patches.radius[nn], 1e-12)) ** 2)
+        want = queries + (weight[..., None] * step[..., None] * normal[nn]).sum(1) / weight.sum(1)[:, None]
+        got = project_onto_blended_quadrics(queries, patches, tree, blend=blend, chunk=1000)
+        # the compiled sums follow numpy's order (equal to the bit on the machine it was measured on)
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-11)
+    moved = np.linalg.norm(got, axis=1)
+    assert np.abs(moved - 50.0).max() < np.abs(np.linalg.norm(queries, axis=1) - 50.0).max()  # pulled onto the sphere
+    assert project_onto_blended_quadrics(np.zeros((0, 3)), patches, tree).shape == (0, 3)
