@@ -4,7 +4,7 @@ point of a cloud to its k-th nearest neighbour on a cell grid.
 Kd-tree work on points in Z order shares the tree's paths and leaves in the cache: a tree built on
 sorted points (`sdf.SurfaceDistance`), or queries in no spatial order asked along the curve and
 put back (`pointcloud.distance_to_points`: 400k random free-space points of the sternum label map
-against its 120k boundary points 1.0-1.26 -> 0.64 s, the sort included, the same distances).
+against its 120k boundary points 0.79 -> 0.65 s in alternated runs, the sort included, the same distances).
 
 Neural-Pull's local scale (`methods.base.knn_sigma`) is the distance to the 51st point; scipy's
 cKDTree finds all 51 for each of a label map's 105k boundary points (~0.6-0.9 s). Here each point

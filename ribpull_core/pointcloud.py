@@ -311,7 +311,7 @@ def distance_to_points(points: np.ndarray, queries: np.ndarray, tree, exact_with
 
     if len(queries) == 0:
         return np.zeros(0, np.float32)
-    # asked along the Z curve (random free-space points): the same distances, ~40 % less time
+    # asked along the Z curve (random free-space points): the same distances, ~18 % less time
     order = morton_order(queries)
     q = queries[order]
     d = tree.query(q, k=1, workers=-1, distance_upper_bound=exact_within)[0]
