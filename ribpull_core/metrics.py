@@ -7,6 +7,8 @@ frame.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import torch
 import trimesh
@@ -58,6 +60,63 @@ def _as_reference(reference, n_samples: int, seed: int) -> tuple[np.ndarray, np.
 EXACT_WITHIN_MM = 3.0
 
 
+@dataclass(frozen=True)
+class ReferenceSamples:
+    """What `surface_metrics` measures a prediction against: (M, 3) points in mm (Z-order), their
+    (M, 3) unit normals, a kd-tree of the points, and a reference mesh's (F, 3, 3) triangles in mm
+    (None for a point reference, whose distances are to its points)."""
+
+    points: np.ndarray
+    normals: np.ndarray
+    tree: cKDTree
+    triangles: np.ndarray | None
+
+
+@dataclass(frozen=True)
+class PredictionSamples:
+    """The predicted mesh's side of `surface_metrics`: its (n, 3) samples (mm) and their (n, 3) face
+    normals; accuracy (n,) mm, each sample's distance to the reference (to its surface for a mesh
+    reference, else = accuracy_sampled); accuracy_sampled (n,) mm and nearest_reference (n,) index:
+    each sample's nearest reference point; completeness_sampled (M,) mm and nearest_sample (M,)
+    index: each reference point's nearest sample."""
+
+    points: np.ndarray
+    normals: np.ndarray
+    accuracy: np.ndarray
+    accuracy_sampled: np.ndarray
+    nearest_reference: np.ndarray
+    completeness_sampled: np.ndarray
+    nearest_sample: np.ndarray
+
+
+def reference_samples(reference, n_samples: int = 100_000, seed: int = 0) -> ReferenceSamples:
+    """`surface_metrics`' reference made ready: a mesh in mm (n_samples points drawn on it, seed + 1)
+    or (M, 3) points / a PointCloud in mm (as they are, their normals if present, else PCA normals
+    over 16 neighbours). It depends on the reference alone, so it can be made before the mesh
+    it will measure (the pipeline makes it beside the mesh stage)."""
+    pts, nrm = _as_reference(reference, n_samples, seed)
+    triangles = np.asarray(reference.triangles) if isinstance(reference, trimesh.Trimesh) else None
+    return ReferenceSamples(pts, nrm, cKDTree(pts), triangles)
+
+
+def prediction_samples(pred_mesh: trimesh.Trimesh, reference: ReferenceSamples, n_samples: int = 100_000,
+                       seed: int = 0) -> PredictionSamples:
+    """n_samples area-uniform points on pred_mesh (mm) and their distances to and from the reference:
+    the part of `surface_metrics` other than `completeness_mm`."""
+    pp, pn = sample_mesh(pred_mesh, n_samples, seed=seed)
+    acc_s, ia = reference.tree.query(pp, k=1, workers=-1)
+    comp_s, ic = cKDTree(pp).query(reference.points, k=1, workers=-1)
+    acc = distance_to_surface(pp, reference.triangles, EXACT_WITHIN_MM) if reference.triangles is not None else acc_s
+    return PredictionSamples(pp, pn, acc, acc_s, ia, comp_s, ic)
+
+
+def completeness_mm(pred_mesh: trimesh.Trimesh, reference: ReferenceSamples) -> np.ndarray:
+    """(M,) distance (mm) from each reference point to pred_mesh's surface
+    (`triangle_distance.distance_to_surface`: exact up to EXACT_WITHIN_MM, farther at most one
+    triangle's radius long): `surface_metrics`' comp, most of its work on a large reference."""
+    return distance_to_surface(reference.points, pred_mesh.triangles, EXACT_WITHIN_MM)
+
+
 def surface_metrics(
     pred_mesh: trimesh.Trimesh,
     reference,
@@ -71,7 +130,21 @@ def surface_metrics(
 
     pred_mesh: mesh in mm; n_samples area-uniform points with face normals are drawn on it.
     reference: a mesh in mm (n_samples points drawn on it too) or (M, 3) points / a PointCloud in mm,
-    used as is (its normals if present, else PCA normals over 16 neighbours).
+    used as is (its normals if present, else PCA normals over 16 neighbours), or either made ready
+    by `reference_samples`. The same numbers as `summarise_surface_metrics` of `prediction_samples`
+    and `completeness_mm`, which the pipeline runs on two threads.
+    """
+    ref = reference if isinstance(reference, ReferenceSamples) else reference_samples(reference, n_samples, seed)
+    return summarise_surface_metrics(prediction_samples(pred_mesh, ref, n_samples, seed), ref,
+                                     completeness_mm(pred_mesh, ref), tau_mm=tau_mm,
+                                     paper_units_per_mm=paper_units_per_mm)
+
+
+def summarise_surface_metrics(pred: PredictionSamples, reference: ReferenceSamples, comp: np.ndarray, *,
+                              tau_mm: float = 1.0, paper_units_per_mm: float | None = None) -> dict:
+    """`surface_metrics`' dict from its parts: `prediction_samples`, the reference and
+    `completeness_mm`.
+
     acc = distance pred samples -> reference, comp = reference points -> pred. A mesh is measured to
     its surface (`triangle_distance.distance_to_surface`: exact up to EXACT_WITHIN_MM, farther at
     most one triangle's radius long), a point reference to its points. Returns (mm unless named):
@@ -85,15 +158,9 @@ def surface_metrics(
     ribcage at 1M samples a side); with paper_units_per_mm k also cd_l1_paper = cd_l1_mm·k·100,
     cd_l2_paper = cd_l2_mm2·k²·1e4, hausdorff_paper = hausdorff_mm·k·100.
     """
-    pp, pn = sample_mesh(pred_mesh, n_samples, seed=seed)
-    rp, rn = _as_reference(reference, n_samples, seed)
-    acc_s, ia = cKDTree(rp).query(pp, k=1, workers=-1)
-    comp_s, ic = cKDTree(pp).query(rp, k=1, workers=-1)
-    acc = distance_to_surface(pp, reference.triangles, EXACT_WITHIN_MM) \
-        if isinstance(reference, trimesh.Trimesh) else acc_s
-    comp = distance_to_surface(rp, pred_mesh.triangles, EXACT_WITHIN_MM)
-    nc_acc = np.abs(np.einsum("ij,ij->i", pn, rn[ia])).mean()
-    nc_comp = np.abs(np.einsum("ij,ij->i", rn, pn[ic])).mean()
+    acc, acc_s, comp_s = pred.accuracy, pred.accuracy_sampled, pred.completeness_sampled
+    nc_acc = np.abs(np.einsum("ij,ij->i", pred.normals, reference.normals[pred.nearest_reference])).mean()
+    nc_comp = np.abs(np.einsum("ij,ij->i", reference.normals, pred.normals[pred.nearest_sample])).mean()
     precision = float((acc <= tau_mm).mean())
     recall = float((comp <= tau_mm).mean())
     out = {
@@ -107,8 +174,8 @@ def surface_metrics(
         "precision": precision,
         "recall": recall,
         "tau_mm": float(tau_mm),
-        "n_samples": len(pp),
-        "n_reference": len(rp),
+        "n_samples": len(pred.points),
+        "n_reference": len(reference.points),
     }
     if paper_units_per_mm is not None:
         k = float(paper_units_per_mm)

@@ -313,37 +313,34 @@ def run_pipeline(
                 cloud, fit_config.refine))) if _patches_beside_the_fit(cloud, refine_plan) else None
             field, frame = fit_field(cloud, fit_config, device, report)
             patches = patch_job.result() if patch_job is not None else None
-        with timed("mesh"):
-            mesh = _surface_mesh(cloud, field, frame, fit_config, refine_plan, patches, report)
-        # The SDF volume (and the weights) is made in a thread beside the skeleton, the metrics and
-        # the files: each leaves a core idle much of its time (kd-tree waits, single-threaded
-        # scipy), so together they take about the longer one's time (60k points: 4.8 -> 3.3 s,
-        # 1.5 mm label map: 6.5 -> 4.7 s for the SDF, skeleton and preview). timings_s keeps each
-        # stage's own wall time, so "sdf" overlaps the stages after it.
-        # The surface metrics (~1-3 s) need neither the SDF nor the skeleton: whichever thread is
-        # free first measures them (the SDF's after its volume, the main one after the skeleton and
-        # the files), so that the other core does not idle at the end (60k points: the SDF is done
-        # about when the skeleton is, then the main thread had the metrics and the files alone).
-        def surface_stage():
-            report("metrics", 0.0, message="metrics started")
-            t = time.perf_counter()
-            out = _surface_metrics(mesh, reference, frame, fit_config)
-            timings["metrics"] = round(time.perf_counter() - t, 3)
-            return out
+        # One thread beside the main one from here on: first the metrics' reference (it depends on
+        # the input alone, and the mesh stage leaves a core idle part of its time), then the SDF.
+        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="ribpull-aside") as aside:
+            reference_job = aside.submit(_metrics_reference, reference, fit_config)
+            with timed("mesh"):
+                mesh = _surface_mesh(cloud, field, frame, fit_config, refine_plan, patches, report)
+            # The SDF volume (and the weights) is made in the thread beside the skeleton, the
+            # metrics and the files: each leaves a core idle much of its time (kd-tree waits,
+            # single-threaded scipy), so together they take about the longer one's time (60k
+            # points: 4.8 -> 3.3 s, 1.5 mm label map: 6.5 -> 4.7 s for the SDF, skeleton and
+            # preview). timings_s keeps each stage's own wall time, so "sdf" overlaps the stages
+            # after it.
+            # The surface metrics need neither the SDF nor the skeleton. Their two halves
+            # (`_SurfaceMetricsWork`) go to whichever thread is free first: the SDF's after its
+            # volume, the main one after the skeleton and the files, so that neither core idles
+            # at the end while the other measures alone.
+            surface_work = _SurfaceMetricsWork(mesh, reference_job, frame, fit_config, timings, report)
 
-        surface_job = _FirstFreeThread(surface_stage)
+            def sdf_stage():
+                t = time.perf_counter()
+                out = _sdf_and_weights(cloud, mesh, field, frame, fit_config, tmp, report)
+                timings["sdf"] = round(time.perf_counter() - t, 3)
+                if not report.should_cancel():
+                    surface_work.run_untaken()
+                return out
 
-        def sdf_stage():
-            t = time.perf_counter()
-            out = _sdf_and_weights(cloud, mesh, field, frame, fit_config, tmp, report)
-            timings["sdf"] = round(time.perf_counter() - t, 3)
-            if not report.should_cancel():
-                surface_job.run_unless_taken()
-            return out
-
-        report("sdf", 0.0, message="sdf started")
-        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="ribpull-sdf") as pool:
-            sdf_job = pool.submit(sdf_stage)
+            report("sdf", 0.0, message="sdf started")
+            sdf_job = aside.submit(sdf_stage)
             try:
                 skeleton = None
                 artifacts = {}
@@ -364,7 +361,7 @@ def run_pipeline(
                         artifacts["preview.png"] = Path(render_preview(tmp / "preview.png", mesh, polylines,
                                                                        title=f"RibPull {fit_config.preset}"))
                 report.check()
-                metrics = _metrics(cloud, surface_job.result(), reference_name, mesh, field, frame, fit_config, skeleton)
+                metrics = _metrics(cloud, surface_work.result(), reference_name, mesh, field, frame, fit_config, skeleton)
             except BaseException:
                 report.abandon()  # the SDF thread stops at its next check; the pool then joins it
                 raise
@@ -567,17 +564,62 @@ class _FirstFreeThread:
         return self._future.result()
 
 
-def _surface_metrics(mesh, reference, frame, fit_config) -> dict:
-    """metrics.surface_metrics of the mesh (mm) against the reference, under the run's MetricsConfig."""
-    from .metrics import surface_metrics
+def _metrics_reference(reference, fit_config):
+    """metrics.reference_samples of the run's reference under its MetricsConfig."""
+    from .metrics import reference_samples
 
-    return surface_metrics(mesh, reference, n_samples=fit_config.metrics.n_samples,
-                           tau_mm=fit_config.metrics.fscore_tau_mm, paper_units_per_mm=frame.paper_units_per_mm,
-                           seed=fit_config.seed)
+    return reference_samples(reference, n_samples=fit_config.metrics.n_samples, seed=fit_config.seed)
+
+
+class _SurfaceMetricsWork:
+    """metrics.surface_metrics of the mesh (mm) under the run's MetricsConfig, as two halves that
+    either of two threads may do: `metrics.completeness_mm` (the reference points' distances to the
+    mesh, the longer half) and `metrics.prediction_samples`. `run_untaken()` runs each half that no
+    thread has taken yet, the longer first; `result()` does the same, waits for the halves other
+    threads took, and returns metrics.summarise_surface_metrics of both: the same numbers as
+    surface_metrics. timings["metrics"]: from the first half's start to the last one's end (s)."""
+
+    def __init__(self, mesh, reference_job: Future, frame, fit_config, timings: dict, report: _Reporter):
+        from .metrics import completeness_mm, prediction_samples
+
+        self._reference_job, self._frame, self._config = reference_job, frame, fit_config
+        self._timings, self._report = timings, report
+        self._lock, self._start = threading.Lock(), None
+        self._halves = [
+            _FirstFreeThread(self._timed(lambda: completeness_mm(mesh, reference_job.result()))),
+            _FirstFreeThread(self._timed(lambda: prediction_samples(mesh, reference_job.result(),
+                                                                    fit_config.metrics.n_samples, fit_config.seed))),
+        ]
+
+    def _timed(self, fn):
+        def run():
+            with self._lock:
+                first, self._start = self._start is None, self._start or time.perf_counter()
+            if first:
+                self._report("metrics", 0.0, message="metrics started")
+            try:
+                return fn()
+            finally:  # the halves end in any order: the stage lasts until the later one's end
+                with self._lock:
+                    self._timings["metrics"] = round(time.perf_counter() - self._start, 3)
+
+        return run
+
+    def run_untaken(self) -> None:
+        for half in self._halves:
+            half.run_unless_taken()
+
+    def result(self) -> dict:
+        from .metrics import summarise_surface_metrics
+
+        completeness, prediction = (half.result() for half in self._halves)
+        return summarise_surface_metrics(prediction, self._reference_job.result(), completeness,
+                                         tau_mm=self._config.metrics.fscore_tau_mm,
+                                         paper_units_per_mm=self._frame.paper_units_per_mm)
 
 
 def _metrics(cloud, surface, reference_name, mesh, field, frame, fit_config, skeleton) -> dict:
-    """metrics.json's content; `surface`: `_surface_metrics`."""
+    """metrics.json's content; `surface`: `_SurfaceMetricsWork.result()`."""
     from .metrics import compression_metrics, mesh_summary
 
     out = {

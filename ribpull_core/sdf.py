@@ -25,7 +25,13 @@ from .mesh import _double_areas, _sample_triangles, inside_scores, sample_surfac
 from .methods.base import FittedField
 from .neighbours import morton_order
 from .pointcloud import PointCloud
-from .sdf_kernels import flat_voxel_centres, grid_upper_bounds, propagate_closest_points, relax_step
+from .sdf_kernels import (
+    cell_corner_distances,
+    flat_voxel_centres,
+    grid_upper_bounds,
+    propagate_closest_points,
+    relax_step,
+)
 from .triangle_distance import closest_points
 from .volume_kernels import mark_offsets
 
@@ -254,22 +260,8 @@ class SurfaceDistance:
         its nearest sample."""
         shape = tuple(int(n) for n in self.nodes)
         g = self.grid_mm
-        ext = self._cp  # pad each axis with the node index n-2, so node n-1 uses cell n-2
-        for ax in range(3):
-            ext = np.concatenate([ext, np.take(ext, [max(shape[ax] - 2, 0)], axis=ax + 1)], axis=ax + 1)
-        ax0, ax1, ax2 = (self.origin[k] + np.arange(shape[k]) * g for k in range(3))
-        d = np.empty(shape)
-        rows = max(1, CHUNK // max(1, shape[1] * shape[2]))
-        for a in range(0, shape[0], rows):
-            b = min(shape[0], a + rows)
-            best = np.full((b - a,) + shape[1:], np.inf)
-            for dx, dy, dz in np.ndindex(2, 2, 2):
-                c = ext[:, a + dx : b + dx, dy : dy + shape[1], dz : dz + shape[2]]
-                q = (ax0[a:b, None, None] - c[0]) ** 2
-                q += (ax1[None, :, None] - c[1]) ** 2
-                q += (ax2[None, None, :] - c[2]) ** 2
-                np.minimum(best, q, out=best)
-            d[a:b] = np.sqrt(best)
+        ax = [self.origin[k] + np.arange(shape[k]) * g for k in range(3)]
+        d = cell_corner_distances(self._cp, ax[0], ax[1], ax[2])
         flat = d.reshape(-1)
         near = np.flatnonzero(flat < 3.0 * g)
         known = np.isin(near, self._near_flat, assume_unique=True)

@@ -1,6 +1,7 @@
 """Compiled CPU kernels (numba) for `sdf.SurfaceDistance`'s closest-point grid: every node's
 closest point taken from its nearest near node (`propagate_closest_points`), one relaxation
-step (`relax_step`), and the grid's distance bound at query points (`grid_upper_bounds`); and the
+step (`relax_step`), the grid's distance bound at query points (`grid_upper_bounds`) and at its
+nodes (`cell_corner_distances`); and the
 mm coordinates of flat voxel indices of a volume (`flat_voxel_centres`).
 
 A step along one axis and direction lets every node take its neighbour's stored closest point
@@ -121,6 +122,42 @@ def grid_upper_bounds(cp_grid, origin, grid_mm, nodes, points):  # pragma: no co
         dist[q] = np.sqrt(best)
         ingrid[q] = inside
     return dist, ingrid
+
+
+@njit(parallel=True, cache=True)
+def cell_corner_distances(cp, ax0, ax1, ax2):  # pragma: no cover - compiled
+    """(n0, n1, n2) float64 mm: at each node of the grid whose closest points cp (3, n0, n1, n2)
+    float32 holds (node coordinates ax0 (n0,), ax1 (n1,), ax2 (n2,) float64 mm), the distance to
+    the nearest of the points stored at the 8 nodes of its cell: the cell it is the lowest corner
+    of, the last cell along an axis for the nodes of the upper face. `SurfaceDistance.node_distances`'
+    grid pass in the float64 arithmetic and order of the numpy passes it replaced (8 shifted
+    whole-grid expressions per chunk of rows; the sternum map's 5.4M nodes ~0.45 -> ~0.05 s), so the
+    same values bit for bit."""
+    n0, n1, n2 = cp.shape[1], cp.shape[2], cp.shape[3]
+    out = np.empty((n0, n1, n2))
+    last0, last1, last2 = max(n0 - 2, 0), max(n1 - 2, 0), max(n2 - 2, 0)
+    for i in prange(n0):
+        ci = min(np.int64(i), last0)  # prange's unsigned index with a signed int would make a float
+        for j in range(n1):
+            cj = min(j, last1)
+            for k in range(n2):
+                ck = min(k, last2)
+                best = np.inf
+                for dx in range(2):
+                    ii = min(ci + dx, n0 - 1)
+                    for dy in range(2):
+                        jj = min(cj + dy, n1 - 1)
+                        for dz in range(2):
+                            kk = min(ck + dz, n2 - 1)
+                            e0 = ax0[i] - np.float64(cp[0, ii, jj, kk])
+                            e1 = ax1[j] - np.float64(cp[1, ii, jj, kk])
+                            e2 = ax2[k] - np.float64(cp[2, ii, jj, kk])
+                            q = e0 * e0
+                            q += e1 * e1
+                            q += e2 * e2
+                            best = min(best, q)
+                out[i, j, k] = np.sqrt(best)
+    return out
 
 
 @njit(parallel=True, cache=True)

@@ -390,6 +390,38 @@ def test_propagated_closest_points_equal_the_numpy_gather_bit_for_bit():
     assert cp.dtype == best.dtype == np.float32
 
 
+def _numpy_cell_corner_distances(cp: np.ndarray, ax: list[np.ndarray]) -> np.ndarray:
+    """The numpy passes cell_corner_distances replaced (SurfaceDistance.node_distances before
+    2026-12-08): each axis padded with its node n - 2, then 8 shifted whole-grid expressions."""
+    shape = cp.shape[1:]
+    ext = cp
+    for a in range(3):
+        ext = np.concatenate([ext, np.take(ext, [max(shape[a] - 2, 0)], axis=a + 1)], axis=a + 1)
+    best = np.full(shape, np.inf)
+    for dx, dy, dz in np.ndindex(2, 2, 2):
+        c = ext[:, dx : dx + shape[0], dy : dy + shape[1], dz : dz + shape[2]]
+        q = (ax[0][:, None, None] - c[0]) ** 2
+        q += (ax[1][None, :, None] - c[1]) ** 2
+        q += (ax[2][None, None, :] - c[2]) ** 2
+        np.minimum(best, q, out=best)
+    return np.sqrt(best)
+
+
+@pytest.mark.parametrize("shape", [(17, 11, 13), (9, 1, 6), (2, 2, 2)])
+def test_cell_corner_distances_equal_the_numpy_passes_bit_for_bit(shape):
+    """sdf_kernels.cell_corner_distances: at each node the nearest of the closest points stored at
+    its cell's 8 nodes (the last cell for the upper faces; an axis one node thick has no cell
+    beyond its node), in the same float64 arithmetic as the numpy passes it replaced."""
+    from ribpull_core.sdf_kernels import cell_corner_distances
+
+    rng = np.random.default_rng(5)
+    cp = (rng.normal(size=(3,) + shape) * 10.0).astype(np.float32)
+    ax = [rng.normal() + np.arange(n) * 1.3 for n in shape]
+    got = cell_corner_distances(cp, *ax)
+    assert got.dtype == np.float64 and got.shape == shape
+    np.testing.assert_array_equal(got, _numpy_cell_corner_distances(cp, ax))
+
+
 def test_fast_surface_sampling_is_area_uniform():
     from ribpull_core.mesh import sample_surface_fast
 

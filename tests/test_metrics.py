@@ -143,3 +143,35 @@ def test_estimate_normals_of_a_plane_and_too_few_points():
     np.testing.assert_allclose(np.abs(estimate_normals(pts)[:, 2]), 1.0, atol=1e-9)
     with pytest.raises(RibPullInputError):
         estimate_normals(pts[:2])
+
+
+def test_surface_metrics_in_halves_on_two_threads_give_the_same_numbers(spheres):
+    """The pipeline's surface metrics: the reference made beforehand (metrics.reference_samples),
+    then completeness_mm and prediction_samples on whichever of two threads gets to each first
+    (pipeline._SurfaceMetricsWork): the same dict as one surface_metrics call, for a point
+    reference and a mesh reference."""
+    import threading
+    from concurrent.futures import Future
+    from types import SimpleNamespace
+
+    from ribpull_core.frame import UnitFrame
+    from ribpull_core.metrics import reference_samples
+    from ribpull_core.pipeline import _Reporter, _SurfaceMetricsWork
+
+    a, b = spheres
+    pts = np.asarray(b.vertices)  # 41k points on the 51 mm sphere
+    frame = UnitFrame.fit(np.asarray(a.vertices))
+    config = SimpleNamespace(seed=4, metrics=SimpleNamespace(n_samples=20_000, fscore_tau_mm=0.5))
+    for reference in (pts, b):
+        ready: Future = Future()
+        ready.set_result(reference_samples(reference, n_samples=20_000, seed=4))
+        timings: dict = {}
+        work = _SurfaceMetricsWork(a, ready, frame, config, timings, _Reporter(None, None))
+        other = threading.Thread(target=work.run_untaken)
+        other.start()
+        got = work.result()
+        other.join()
+        want = surface_metrics(a, reference, n_samples=20_000, tau_mm=0.5, seed=4,
+                               paper_units_per_mm=frame.paper_units_per_mm)
+        assert got == want
+        assert 0.9 < want["cd_l1_mm"] < 1.1 and timings["metrics"] >= 0.0  # the spheres are 1 mm apart
