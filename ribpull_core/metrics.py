@@ -18,7 +18,7 @@ from .errors import RibPullInputError
 from .neighbours import morton_order
 from .pointcloud import PointCloud
 from .quadrics import pca_normals
-from .triangle_distance import distance_to_surface
+from .triangle_distance import TriangleSearch, distance_to_surface
 
 
 def sample_mesh(mesh: trimesh.Trimesh, n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -110,11 +110,15 @@ def prediction_samples(pred_mesh: trimesh.Trimesh, reference: ReferenceSamples, 
     return PredictionSamples(pp, pn, acc, acc_s, ia, comp_s, ic)
 
 
-def completeness_mm(pred_mesh: trimesh.Trimesh, reference: ReferenceSamples) -> np.ndarray:
-    """(M,) distance (mm) from each reference point to pred_mesh's surface
+def completeness_mm(pred_mesh: trimesh.Trimesh, reference: ReferenceSamples, rows: slice = slice(None),
+                    search: TriangleSearch | None = None) -> np.ndarray:
+    """(m,) distance (mm) from each reference point (those of `rows`) to pred_mesh's surface
     (`triangle_distance.distance_to_surface`: exact up to EXACT_WITHIN_MM, farther at most one
-    triangle's radius long): `surface_metrics`' comp, most of its work on a large reference."""
-    return distance_to_surface(reference.points, pred_mesh.triangles, EXACT_WITHIN_MM)
+    triangle's radius long): `surface_metrics`' comp, most of its work on a large reference. Each
+    point's distance is its own, so parts of the rows give the parts of the whole. search: a
+    `TriangleSearch` of pred_mesh's triangles, to share between parts (made here if not given)."""
+    search = search if search is not None else TriangleSearch(pred_mesh.triangles)
+    return search.distances(reference.points[rows], EXACT_WITHIN_MM)
 
 
 def surface_metrics(

@@ -332,7 +332,7 @@ def run_pipeline(
             # points: 4.8 -> 3.3 s, 1.5 mm label map: 6.5 -> 4.7 s for the SDF, skeleton and
             # preview). timings_s keeps each stage's own wall time, so "sdf" overlaps the stages
             # after it.
-            # The surface metrics need neither the SDF nor the skeleton. Their two halves
+            # The surface metrics need neither the SDF nor the skeleton. Their parts
             # (`_SurfaceMetricsWork`) go to whichever thread is free first: the SDF's after its
             # volume, the main one after the skeleton and the files, so that neither core idles
             # at the end while the other measures alone.
@@ -580,21 +580,32 @@ def _metrics_reference(reference, fit_config):
 
 
 class _SurfaceMetricsWork:
-    """metrics.surface_metrics of the mesh (mm) under the run's MetricsConfig, as two halves that
+    """metrics.surface_metrics of the mesh (mm) under the run's MetricsConfig, as three parts that
     either of two threads may do: `metrics.completeness_mm` (the reference points' distances to the
-    mesh, the longer half) and `metrics.prediction_samples`. `run_untaken()` runs each half that no
-    thread has taken yet, the longer first; `result()` does the same, waits for the halves other
-    threads took, and returns metrics.summarise_surface_metrics of both: the same numbers as
-    surface_metrics. timings["metrics"]: from the first half's start to the last one's end (s)."""
+    mesh, most of the work) of the first and of the second half of the reference points, against
+    one shared triangle search, and `metrics.prediction_samples`. `run_untaken()` runs each part
+    that no thread has taken yet, in that order; `result()` does the same, waits for the parts the
+    other thread took, and returns metrics.summarise_surface_metrics of them: the same numbers as
+    surface_metrics. timings["metrics"]: from the first part's start to the last one's end (s)."""
 
     def __init__(self, mesh, reference_job: Future, frame, fit_config, timings: dict, report: _Reporter):
         from .metrics import completeness_mm, prediction_samples
+        from .triangle_distance import TriangleSearch
 
         self._reference_job, self._frame, self._config = reference_job, frame, fit_config
         self._timings, self._report = timings, report
         self._lock, self._start = threading.Lock(), None
-        self._halves = [
-            _FirstFreeThread(self._timed(lambda: completeness_mm(mesh, reference_job.result()))),
+        search = _FirstFreeThread(lambda: TriangleSearch(mesh.triangles))  # built by the first part to ask
+
+        def completeness(first_half: bool):
+            reference = reference_job.result()
+            half = len(reference.points) // 2
+            rows = slice(0, half) if first_half else slice(half, None)
+            return completeness_mm(mesh, reference, rows, search=search.result())
+
+        self._parts = [
+            _FirstFreeThread(self._timed(lambda: completeness(True))),
+            _FirstFreeThread(self._timed(lambda: completeness(False))),
             _FirstFreeThread(self._timed(lambda: prediction_samples(mesh, reference_job.result(),
                                                                     fit_config.metrics.n_samples, fit_config.seed))),
         ]
@@ -607,21 +618,22 @@ class _SurfaceMetricsWork:
                 self._report("metrics", 0.0, message="metrics started")
             try:
                 return fn()
-            finally:  # the halves end in any order: the stage lasts until the later one's end
+            finally:  # the parts end in any order: the stage lasts until the last one's end
                 with self._lock:
                     self._timings["metrics"] = round(time.perf_counter() - self._start, 3)
 
         return run
 
     def run_untaken(self) -> None:
-        for half in self._halves:
-            half.run_unless_taken()
+        for part in self._parts:
+            part.run_unless_taken()
 
     def result(self) -> dict:
         from .metrics import summarise_surface_metrics
 
-        completeness, prediction = (half.result() for half in self._halves)
-        return summarise_surface_metrics(prediction, self._reference_job.result(), completeness,
+        self.run_untaken()  # first whatever part is left, then wait for those the other thread took
+        first, second, prediction = (part.result() for part in self._parts)
+        return summarise_surface_metrics(prediction, self._reference_job.result(), np.concatenate([first, second]),
                                          tau_mm=self._config.metrics.fscore_tau_mm,
                                          paper_units_per_mm=self._frame.paper_units_per_mm)
 

@@ -133,6 +133,35 @@ class _ReachGrid:
         return self.grid[tuple(idx.T)].astype(np.float64), 2.0 * self.cell
 
 
+class TriangleSearch:
+    """The nearest-triangle search of `distance_to_surface` over (F, 3, 3) `triangles`, built once
+    (a kd-tree of their centroids and the `_ReachGrid` of their radii) so that several callers, or
+    threads, can measure points against the same surface: `distances(points)` returns what
+    distance_to_surface(points, triangles) does, bit for bit, for any split of the points (each
+    point's search is its own)."""
+
+    def __init__(self, triangles: np.ndarray):
+        self.triangles = np.ascontiguousarray(triangles, dtype=np.float64).reshape(-1, 3, 3)
+        if len(self.triangles) == 0:
+            raise ValueError("cannot measure distances to a mesh without triangles")
+        centroids = self.triangles.mean(axis=1)
+        radius = np.linalg.norm(self.triangles - centroids[:, None, :], axis=2).max(axis=1)
+        self.tree = cKDTree(centroids)
+        self.reach = _ReachGrid(centroids, radius)
+        self.max_radius = float(radius.max())
+
+    def distances(self, points: np.ndarray, exact_within: float = np.inf, k: int = 16,
+                  block: int = 262_144) -> np.ndarray:
+        """(N,) distance from (N, 3) `points` to the surface, in the triangles' units (see
+        `distance_to_surface`)."""
+        p = np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(-1, 3))
+        out = np.empty(len(p))
+        for s in range(0, len(p), block):
+            out[s : s + block] = _distance_block(p[s : s + block], self.triangles, self.tree, self.reach,
+                                                 self.max_radius, k, exact_within)
+        return out
+
+
 def distance_to_surface(points: np.ndarray, triangles: np.ndarray, exact_within: float = np.inf, k: int = 16,
                         block: int = 262_144) -> np.ndarray:
     """(N,) distance from (N, 3) `points` to the surface of (F, 3, 3) `triangles`, in their units:
@@ -145,20 +174,9 @@ def distance_to_surface(points: np.ndarray, triangles: np.ndarray, exact_within:
     their 4k nearest (k = 16: this proves every point within ~2.5 mm of a ribcage meshed at ~1 mm).
     A point still not proven keeps its best, which is at most the last centroid's distance while
     the true distance is at least that minus the radius: too long by at most the radius. Far points
-    (a stray part many mm off) are not worth a search over thousands of triangles each."""
-    p = np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(-1, 3))
-    tri = np.ascontiguousarray(triangles, dtype=np.float64).reshape(-1, 3, 3)
-    if len(tri) == 0:
-        raise ValueError("cannot measure distances to a mesh without triangles")
-    centroids = tri.mean(axis=1)
-    radius = np.linalg.norm(tri - centroids[:, None, :], axis=2).max(axis=1)
-    tree = cKDTree(centroids)
-    reach = _ReachGrid(centroids, radius)
-    out = np.empty(len(p))
-    for s in range(0, len(p), block):
-        out[s : s + block] = _distance_block(p[s : s + block], tri, tree, reach, float(radius.max()), k,
-                                             exact_within)
-    return out
+    (a stray part many mm off) are not worth a search over thousands of triangles each. The search
+    is a `TriangleSearch`; make one to measure several sets of points against the same triangles."""
+    return TriangleSearch(triangles).distances(points, exact_within, k, block)
 
 
 def _distance_block(p: np.ndarray, tri: np.ndarray, tree: cKDTree, reach: _ReachGrid, max_radius: float,
