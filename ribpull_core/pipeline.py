@@ -320,7 +320,7 @@ def run_pipeline(
         # while the mesh stage leaves a core idle part of its time: the refinement's patches where
         # the training did not (the mesh stage needs them after marching cubes: 1.5 mm label maps
         # ~0.6 s), then the metrics' reference; then the SDF.
-        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="ribpull-aside") as aside:
+        with ThreadPoolExecutor(max_workers=1, thread_name_prefix=ASIDE_THREAD_PREFIX) as aside:
             if patches is None and refine_plan is not None and refine_plan.applies:
                 patches = aside.submit(make_patches)
             reference_job = aside.submit(_metrics_reference, reference, fit_config)
@@ -398,6 +398,9 @@ def run_pipeline(
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 
+
+#: the name prefix of the thread beside the main one after the fit (patches, metrics' reference, SDF)
+ASIDE_THREAD_PREFIX = "ribpull-aside"
 
 #: point-neighbour pairs of the refinement's patches above which they are made beside the training
 #: (`_patches_beside_the_fit`)

@@ -123,7 +123,9 @@ def test_cancel_during_the_skeleton_leaves_no_output_and_no_sdf_thread(small_pha
                      should_cancel=lambda: "skeleton" in stages)
     assert "sdf" in stages and "skeleton" in stages and "metrics" not in stages
     assert not out.exists() and not list(tmp_path.glob(".ribpull-*"))
-    assert not [t for t in threading.enumerate() if t.name.startswith("ribpull-sdf")]  # joined, not left running
+    from ribpull_core.pipeline import ASIDE_THREAD_PREFIX
+
+    assert not [t for t in threading.enumerate() if t.name.startswith(ASIDE_THREAD_PREFIX)]  # joined, not left running
 
 
 def test_bad_options_are_input_errors(small_phantom, tmp_path):
