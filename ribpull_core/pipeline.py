@@ -94,6 +94,7 @@ import numpy as np
 
 from .errors import JobCanceled, RibPullInputError
 from .frame import UnitFrame
+from .workshare import WorkShare
 
 #: where each stage's progress lives in the overall [0, 1] fraction
 STAGE_SPANS = {
@@ -338,9 +339,14 @@ def run_pipeline(
             # at the end while the other measures alone.
             surface_work = _SurfaceMetricsWork(mesh, reference_job, frame, fit_config, timings, report)
 
+            # The SDF's point queries (a map whose voxel centres are not grid nodes: 12M on the
+            # anisotropic one, the run's last work) are shared: the main thread, once done with the
+            # skeleton and the files, takes chunks of them before the metrics' parts.
+            sdf_share = WorkShare()
+
             def sdf_stage():
                 t = time.perf_counter()
-                out = _sdf_and_weights(cloud, mesh, field, frame, fit_config, tmp, report)
+                out = _sdf_and_weights(cloud, mesh, field, frame, fit_config, tmp, report, sdf_share)
                 timings["sdf"] = round(time.perf_counter() - t, 3)
                 if not report.should_cancel():
                     surface_work.run_untaken()
@@ -368,6 +374,10 @@ def run_pipeline(
                         artifacts["preview.png"] = Path(render_preview(tmp / "preview.png", mesh, polylines,
                                                                        title=f"RibPull {fit_config.preset}"))
                 report.check()
+                # the metrics' parts, each after helping with the SDF's point queries if it is at
+                # them: they are the longer thread's work
+                surface_work.run_untaken(before_each=sdf_share.help)
+                sdf_share.help()
                 metrics = _metrics(cloud, surface_work.result(), reference_name, mesh, field, frame, fit_config, skeleton)
             except BaseException:
                 report.abandon()  # the SDF thread stops at its next check; the pool then joins it
@@ -481,16 +491,17 @@ def _surface_mesh(cloud, field, frame, fit_config, refine_plan, patches, report:
     return mesh
 
 
-def _sdf_and_weights(cloud, mesh, field, frame, fit_config, tmp: Path, report: _Reporter):
+def _sdf_and_weights(cloud, mesh, field, frame, fit_config, tmp: Path, report: _Reporter, share=None):
     """sdf.nii.gz (the SDF volume on the input's grid, mm) and the weights into `tmp`; returns
-    (name -> path, (volume, affine)). Stage "sdf"; checks report.should_cancel between chunks."""
+    (name -> path, (volume, affine)). Stage "sdf"; checks report.should_cancel between chunks;
+    share: a WorkShare through which another thread may help with its point queries."""
     from .dicom import LPS_FROM_RAS
     from .sdf import sdf_grid_for, signed_distance_volume, write_nifti
     from .weights import save_field
 
     report.check()
     shape, affine = sdf_grid_for(cloud, frame, fit_config.sdf)
-    volume = signed_distance_volume(mesh, field, frame, shape, affine, should_cancel=report.should_cancel)
+    volume = signed_distance_volume(mesh, field, frame, shape, affine, should_cancel=report.should_cancel, share=share)
     # NIfTI's world is RAS; a DICOM input's frame is LPS: the file says so through its affine
     nifti_affine = affine if cloud.dicom_source is None else LPS_FROM_RAS @ affine
     artifacts = {"sdf.nii.gz": Path(write_nifti(tmp / "sdf.nii.gz", volume, nifti_affine))}
@@ -627,8 +638,11 @@ class _SurfaceMetricsWork:
 
         return run
 
-    def run_untaken(self) -> None:
+    def run_untaken(self, before_each: Callable[[], object] | None = None) -> None:
+        """Run the parts no thread has taken yet, in order; before_each() before each of them."""
         for part in self._parts:
+            if before_each is not None:
+                before_each()
             part.run_unless_taken()
 
     def result(self) -> dict:

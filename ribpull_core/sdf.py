@@ -34,6 +34,7 @@ from .sdf_kernels import (
 )
 from .triangle_distance import closest_points
 from .volume_kernels import mark_offsets
+from .workshare import WorkShare
 
 #: voxels processed per chunk (bounds memory: ~100 bytes per voxel in flight)
 CHUNK = 1 << 20
@@ -293,6 +294,7 @@ def signed_distance_volume(
     seed: int = 0,
     grid_mm: float | None = None,
     should_cancel: Callable[[], bool] | None = None,
+    share: WorkShare | None = None,
 ) -> np.ndarray:
     """(shape) float32 signed distance in mm at the voxel centres (affine: voxel -> mm), negative inside.
 
@@ -307,7 +309,9 @@ def signed_distance_volume(
     cross the surface, and each takes the majority sign of the field at up to `votes` random voxels
     of it. Voxels outside the mesh's bounding box are outside (the mesh is closed at its meshing
     box, and a field is not trusted outside the box it was meshed in). should_cancel() is checked
-    between chunks of work (raises JobCanceled).
+    between chunks of work (raises JobCanceled). share: a `workshare.WorkShare` through which another
+    thread may take chunks of the voxel centres' point queries (the values are the same whoever
+    queries them).
     """
     shape = tuple(int(n) for n in shape)
     n = int(np.prod(shape))
@@ -344,13 +348,16 @@ def signed_distance_volume(
         absd = dist.node_distances()[np.ix_(*on_nodes)].astype(np.float32).ravel()
     else:
         absd = np.empty(n, dtype=np.float32)
-        for s in range(0, n, CHUNK):
+
+        def query_chunk(s: int) -> None:  # voxels s .. s + CHUNK; chunks write disjoint slices
             if should_cancel is not None and should_cancel():
                 raise JobCanceled("canceled")
             p = voxel_centers_mm(shape, affine, s, min(n, s + CHUNK))
             absd[s : s + len(p)] = dist(p)
             if not aligned:
                 outbox[s : s + len(p)] = dist.outside_bounds(p)
+
+        (share or WorkShare()).run(query_chunk, range(0, n, CHUNK))
     inside = np.zeros(n, dtype=bool)
     level = float(field.level)
 
