@@ -308,12 +308,12 @@ def run_pipeline(
                 # a label map's voxel centres fill the solid: fit (and score against) its boundary
                 cloud = _label_map_samples(cloud, fit_config.label_map, options.seed)
             reference, reference_name = _reference_for_metrics(options, cloud)
-
-        def make_patches():
-            return refinement_patches(cloud.points, refine_plan, point_weights_of(cloud, fit_config.refine))
-
         with timed("fit"), ThreadPoolExecutor(max_workers=1, thread_name_prefix="ribpull-patches") as pool:
             refine_plan = _plan_refinement(cloud, fit_config, options)
+
+            def make_patches():  # the input's alone: beside the training, or beside marching cubes below
+                return refinement_patches(cloud.points, refine_plan, point_weights_of(cloud, fit_config.refine))
+
             patch_job = pool.submit(make_patches) if _patches_beside_the_fit(cloud, refine_plan) else None
             field, frame = fit_field(cloud, fit_config, device, report)
             patches = patch_job.result() if patch_job is not None else None

@@ -1,8 +1,8 @@
 """Compiled CPU kernels (numba) for `sdf.SurfaceDistance`'s closest-point grid: every node's
 closest point taken from its nearest near node (`propagate_closest_points`), one relaxation
 step (`relax_step`), the grid's distance bound at query points (`grid_upper_bounds`) and at its
-nodes (`cell_corner_distances`); and the
-mm coordinates of flat voxel indices of a volume (`flat_voxel_centres`).
+nodes (`cell_corner_distances`); and the mm coordinates of flat voxel indices of a volume
+(`flat_voxel_centres`).
 
 A step along one axis and direction lets every node take its neighbour's stored closest point
 when that point is nearer to the node, each node reading its neighbour's point from before the
