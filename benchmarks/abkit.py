@@ -146,21 +146,26 @@ def print_runs(spec: str, case, runs, samples: int) -> None:
         print(f"| {spec} | {name} | {score_cell(s)} | {sep} | {seconds:.0f} | {s['cd_l1_mm'] / base:.3f} |", flush=True)
 
 
-def compare_variants(args, variants, extra=None) -> None:
-    """The A/B scripts' loop: for each case of args.cases (`bench_case` specs) print the bench
-    baseline and one `default` run per (name, change) of `variants` (change: a `config_change`, a
-    RefineChange, or None for the preset as it is), scored on args.samples per side. extra(runs) may append derived
-    (name, mesh mm, seconds) runs (e.g. a post-processed copy) before the rows are printed."""
+def compare_variants(args, variants, extra=None, prepare=None) -> None:
+    """The A/B scripts' loop: for each case of args.cases (`bench_case` specs; at each phantom seed
+    of args.seeds when the script has that option, else 0) print the bench baseline and one
+    `default` run per (name, change) of `variants` (change: a `config_change`, a RefineChange, or
+    None for the preset as it is), scored on args.samples per side. prepare(case) may change the
+    case's input file first (e.g. roughen a label map); extra(runs) may append derived (name, mesh
+    mm, seconds) runs (e.g. a post-processed copy) before the rows are printed."""
     import tempfile
 
     print(TABLE_HEADER)
     with tempfile.TemporaryDirectory() as tmp:
         for spec in args.cases:
-            case = bench_case(spec, Path(tmp))
-            runs = [baseline_for(case)]
-            for i, (name, change) in enumerate(variants):
-                mesh, seconds = fit_default(Path(case.input_path), Path(tmp) / f"{case.name}-{i}", change, labels=case.labels)
-                runs.append((name, mesh, seconds))
-            if extra is not None:
-                extra(runs)
-            print_runs(spec, case, runs, args.samples)
+            for seed in getattr(args, "seeds", None) or (0,):
+                case = bench_case(spec, Path(tmp), seed)
+                if prepare is not None:
+                    prepare(case)
+                runs = [baseline_for(case)]
+                for i, (name, change) in enumerate(variants):
+                    mesh, seconds = fit_default(Path(case.input_path), Path(tmp) / f"{case.name}-{i}", change, labels=case.labels)
+                    runs.append((name, mesh, seconds))
+                if extra is not None:
+                    extra(runs)
+                print_runs(f"{spec} seed {seed}" if seed else spec, case, runs, args.samples)

@@ -622,3 +622,29 @@ def test_partial_volume_majority_rule_on_coarse_voxels(spacing):
     assert np.array_equal(labelled[clear], frac[clear] > 0.5)
     assert np.sum(clear & (centre_in != (frac > 0.5))) >= 3  # the centre test gets these wrong
     assert np.all(frac[labelled] > 0.4) and np.all(frac[~labelled] < 0.6)  # near-ties only either way
+
+
+def test_a_roughened_label_map_flips_patches_of_its_boundary_only():
+    from scipy import ndimage
+
+    from ribpull_core.phantom import roughen_label_map
+
+    vol = np.zeros((40, 40, 40), np.uint8)
+    vol[8:20, 8:30, 10:30] = 5
+    vol[22:32, 8:30, 10:30] = 7
+    rough = roughen_label_map(vol, flip_fraction=0.1, seed=3)
+    assert np.array_equal(rough, roughen_label_map(vol, flip_fraction=0.1, seed=3))  # seeded
+    assert not np.array_equal(rough, roughen_label_map(vol, flip_fraction=0.1, seed=4))
+    six = ndimage.generate_binary_structure(3, 1)
+    inside = vol > 0
+    inner = inside & ~ndimage.binary_erosion(inside, six)
+    outer = ~inside & ndimage.binary_dilation(inside, six)
+    changed = rough != vol
+    # only boundary voxels change, about the fraction asked on either side
+    assert not (changed & ~(inner | outer)).any()
+    dents, bumps = changed & inner, changed & outer
+    assert (rough[dents] == 0).all() and set(np.unique(rough[bumps])) <= {5, 7}
+    assert 0.05 < dents.sum() / inner.sum() < 0.15 and 0.05 < bumps.sum() / outer.sum() < 0.15
+    # in patches: most flipped voxels have a flipped 26-neighbour
+    neighbours = ndimage.convolve(changed.astype(int), np.ones((3, 3, 3), int), mode="constant") - 1
+    assert (neighbours[changed] > 0).mean() > 0.7
