@@ -199,14 +199,19 @@ def test_bad_upload_shows_the_problem_title_and_detail(page, service, tmp_path):
     assert page.locator("#jobs tbody tr").count() == before  # nothing was queued
 
 
+#: the fit the page watches in test_submit_watch_view_pick_download_cancel (smoke preset)
+WATCHED_ITERATIONS = 3 * servicekit.LONG["iterations"]
+
+
 def test_submit_watch_view_pick_download_cancel(page, launch_chromium, service, sample_ply, tmp_path):
     url = service.url
     enter_key(page, url)
 
     # 1. two uploads through the form; the second waits behind the first (one worker) and is canceled
     #    from the list while queued, then its files are deleted from the list
-    # the watched job runs the long smoke schedule so that its fit outlasts several of the page's 1 s polls
-    job_id = submit_through_form(page, sample_ply, iterations=servicekit.LONG["iterations"])
+    # the watched job runs 3x the long smoke schedule so that its fit outlasts several of the page's
+    # 1 s polls (at 400 iterations a quiet machine ran it in ~3.5 s, and the page saw only 2)
+    job_id = submit_through_form(page, sample_ply, iterations=WATCHED_ITERATIONS)
     queued_id = submit_through_form(page, sample_ply)
     row(page, queued_id).locator("button.cancel").click()
     wait_status(page, f"document.querySelector('#jobs tr[data-job-id=\"{queued_id}\"]').dataset.status",
@@ -216,7 +221,7 @@ def test_submit_watch_view_pick_download_cancel(page, launch_chromium, service, 
         f"() => document.querySelector('#jobs tr[data-job-id=\"{queued_id}\"]').textContent.includes('files deleted')")
     with service.client() as c:
         assert c.get(f"/v1/jobs/{queued_id}").json()["artifacts_deleted"] is True
-        assert c.get(f"/v1/jobs/{job_id}").json()["params"]["iterations"] == servicekit.LONG["iterations"]
+        assert c.get(f"/v1/jobs/{job_id}").json()["params"]["iterations"] == WATCHED_ITERATIONS
 
     # 2. the list shows the running fit (stage, iteration, loss) and its loss curve; then the job's page
     #    while it runs: stage, iteration and the loss curve move
