@@ -1057,7 +1057,7 @@ def voxelize(
 def roughen_label_map(volume: np.ndarray, flip_fraction: float = 0.08, seed: int = 0,
                       correlation_voxels: float = 1.0) -> np.ndarray:
     """A copy of an (X, Y, Z) integer label volume with the boundary a real segmentation draws: a
-    smooth random field (white noise under a Gaussian of correlation_voxels, unit std) flips
+    smooth random field (white noise under a Gaussian of correlation_voxels) flips
     about flip_fraction of the voxels on either side of the boundary (6-neighbourhood), in patches
     a voxel or two wide. Inside voxels where the field is high are cleared (dents); outside voxels
     where it is as low take a neighbour's label (bumps), as many of each.
@@ -1070,7 +1070,6 @@ def roughen_label_map(volume: np.ndarray, flip_fraction: float = 0.08, seed: int
     vol = np.asarray(volume)
     rng = np.random.default_rng(seed)
     noise = ndimage.gaussian_filter(rng.standard_normal(vol.shape), float(correlation_voxels))
-    noise /= noise.std()
     inside = vol > 0
     six = ndimage.generate_binary_structure(3, 1)
     inner_border = inside & ~ndimage.binary_erosion(inside, six)

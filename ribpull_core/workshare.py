@@ -24,9 +24,13 @@ class _Job:
         self.next, self.running, self.error = 0, 0, None
         self.cond = threading.Condition()
 
+    def _none_left(self) -> bool:
+        """No item left to take: all taken, or an item failed (call under self.cond)."""
+        return self.next >= len(self.items) or self.error is not None
+
     def _take(self) -> int | None:
         with self.cond:
-            if self.next >= len(self.items) or self.error is not None:
+            if self._none_left():
                 return None
             self.next += 1
             self.running += 1
@@ -48,7 +52,7 @@ class _Job:
     def wait(self) -> None:
         """Until no item is running and none is left to take."""
         with self.cond:
-            self.cond.wait_for(lambda: self.running == 0 and (self.next >= len(self.items) or self.error is not None))
+            self.cond.wait_for(lambda: self.running == 0 and self._none_left())
 
 
 class WorkShare:
